@@ -1,0 +1,31 @@
+"""ament_python package set-up: `ros2 run gd_completion completer` and the `gd-completion` tool."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "gd_completion"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    package_data={PACKAGE: ["weights/*.pt", "msg/*.msg"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
+    ],
+    install_requires=["setuptools", "numpy", "pyyaml"],
+    zip_safe=True,
+    maintainer="gd_completion developers",
+    description="Graph-Guided Deformation completion of lidar vehicle scans for ROS 2.",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "completer = gd_completion.ros.completer_node:main",
+            "gd-completion = gd_completion.cli:main",
+        ],
+    },
+)
