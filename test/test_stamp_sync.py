@@ -1,0 +1,131 @@
+"""StampSync pairing, eviction and overflow counters; LatestSlot hand-over (pure Python, no rclpy)."""
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from gd_completion.ros.stamp_sync import LatestSlot, StampSync, stamp_to_ns
+
+MS = 1_000_000
+
+
+def make(tolerance_ms: int = 10, queue: int = 3, max_wait_ms: int | None = None) -> StampSync:
+    return StampSync(tolerance_ms * MS, queue, None if max_wait_ms is None else max_wait_ms * MS)
+
+
+def test_stamp_to_ns():
+    class T:
+        sec, nanosec = 12, 345
+    assert stamp_to_ns(T) == 12_000_000_345
+
+
+def test_pairs_cloud_then_boxes_within_tolerance():
+    s = make()
+    assert s.add_cloud(100 * MS, "c100") is None
+    pair = s.add_boxes(108 * MS, "b108")
+    assert (pair.stamp_ns, pair.cloud, pair.boxes) == (100 * MS, "c100", "b108")
+    assert s.pending == (0, 0) and s.counters.paired == 1
+
+
+def test_pairs_boxes_then_cloud_and_keeps_cloud_stamp():
+    s = make()
+    assert s.add_boxes(205 * MS, "b") is None
+    pair = s.add_cloud(200 * MS, "c")
+    assert (pair.stamp_ns, pair.cloud, pair.boxes) == (200 * MS, "c", "b")
+
+
+def test_outside_tolerance_does_not_pair():
+    s = make(tolerance_ms=10)
+    assert s.add_cloud(100 * MS, "c") is None
+    assert s.add_boxes(111 * MS, "b") is None
+    assert s.counters.paired == 0
+    # the boxes are newer than cloud + tolerance, so that cloud can never get boxes: dropped and counted
+    assert s.counters.cloud_no_boxes == 1 and s.pending == (0, 1)
+
+
+def test_nearest_stamp_wins():
+    s = make(tolerance_ms=50, queue=5)
+    s.add_cloud(100 * MS, "c100")
+    s.add_cloud(130 * MS, "c130")
+    pair = s.add_boxes(125 * MS, "b125")
+    assert pair.cloud == "c130"
+    # c100 is older than 125 - 50 = 75? no: 100 >= 75, so it still waits
+    assert s.pending == (1, 0) and s.counters.cloud_no_boxes == 0
+
+
+def test_boxes_that_never_get_a_cloud_are_counted_when_a_newer_cloud_arrives():
+    s = make()
+    s.add_boxes(100 * MS, "lost")
+    s.add_boxes(200 * MS, "b200")
+    pair = s.add_cloud(200 * MS, "c200")
+    assert pair.boxes == "b200"
+    assert s.counters.boxes_no_cloud == 1 and s.pending == (0, 0)
+
+
+def test_late_boxes_still_pair_with_a_waiting_cloud():
+    """Detector latency: clouds 1 and 2 arrive before the boxes of cloud 1."""
+    s = make(tolerance_ms=10, queue=5)
+    s.add_cloud(100 * MS, "c100")
+    s.add_cloud(200 * MS, "c200")
+    assert s.add_boxes(100 * MS, "b100").cloud == "c100"
+    assert s.add_boxes(200 * MS, "b200").cloud == "c200"
+    assert s.counters.as_dict() == {"paired": 2, "cloud_no_boxes": 0, "boxes_no_cloud": 0,
+                                    "cloud_overflow": 0, "boxes_overflow": 0}
+
+
+def test_overflow_drops_oldest_and_counts():
+    s = make(queue=2)
+    for i in range(5):
+        s.add_cloud(i * 100 * MS, f"c{i}")
+    assert s.pending == (2, 0) and s.counters.cloud_overflow == 3
+    assert s.add_boxes(400 * MS, "b").cloud == "c4"
+    for i in range(4):
+        s.add_boxes((1000 + i * 100) * MS, f"b{i}")
+    assert s.counters.boxes_overflow == 2
+
+
+def test_expire_drops_messages_that_waited_too_long():
+    s = make(max_wait_ms=500)
+    s.add_cloud(100 * MS, "c", now_ns=0)
+    s.add_boxes(900 * MS, "b", now_ns=400 * MS)  # not pairable (and evicts the cloud by stamp)
+    assert s.counters.cloud_no_boxes == 1
+    assert s.expire(800 * MS) == 0  # boxes received at 400 ms: waited 400 ms < 500 ms
+    assert s.expire(901 * MS) == 1
+    assert s.counters.boxes_no_cloud == 1 and s.pending == (0, 0)
+
+
+def test_expire_without_max_wait_is_noop():
+    s = make()
+    s.add_cloud(0, "c")
+    assert s.expire(10**18) == 0 and s.pending == (1, 0)
+
+
+@pytest.mark.parametrize("tol, queue", [(-1, 3), (0, 0)])
+def test_rejects_bad_settings(tol, queue):
+    with pytest.raises(ValueError):
+        StampSync(tol, queue)
+
+
+def test_latest_slot_newest_wins_and_counts_replaced():
+    slot: LatestSlot[int] = LatestSlot()
+    assert slot.put(1) is False
+    assert slot.put(2) is True
+    assert slot.put(3) is True
+    assert slot.take(timeout=0) == 3 and slot.replaced == 2
+    assert slot.take(timeout=0.01) is None
+
+
+def test_latest_slot_wakes_waiting_taker_and_close():
+    slot: LatestSlot[str] = LatestSlot()
+    got: list = []
+    t = threading.Thread(target=lambda: got.append(slot.take(timeout=5)))
+    t.start()
+    slot.put("x")
+    t.join(2)
+    assert got == ["x"]
+    t = threading.Thread(target=lambda: got.append(slot.take(timeout=5)))
+    t.start()
+    slot.close()
+    t.join(2)
+    assert not t.is_alive() and got == ["x", None]
