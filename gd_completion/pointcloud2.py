@@ -177,6 +177,9 @@ def read_points(msg: Any) -> np.ndarray:
 def read_xyz(msg: Any) -> np.ndarray:
     """x, y, z of every point as a new (height*width, 3) float32 array (non-finite points kept)."""
     d = _decode(msg)
+    h, w = d.height, d.width
+    if h * w == 0:
+        return np.empty((0, 3), dtype=np.float32)  # an empty cloud needs no fields
     by_name = {s.name: s for s in d.fields}
     missing = [c for c in "xyz" if c not in by_name]
     if missing:
@@ -187,10 +190,7 @@ def read_xyz(msg: Any) -> np.ndarray:
     for s in xyz:
         if s.count != 1:
             raise PointCloud2Error(f"PointCloud2 field '{s.name}' has count {s.count}; x/y/z need count 1")
-    h, w = d.height, d.width
     out = np.empty((h, w, 3), dtype=np.float32)
-    if h * w == 0:
-        return out.reshape(0, 3)
     order = ">" if d.bigendian else "<"
     base = _DATATYPE_TO_NUMPY[xyz[0].datatype]
     if (all(s.datatype == xyz[0].datatype for s in xyz)
