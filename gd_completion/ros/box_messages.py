@@ -1,0 +1,103 @@
+"""visualization_msgs/MarkerArray and vision_msgs/Detection3DArray -> Box3D, duck-typed on the messages."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Iterable, Mapping, Sequence
+
+from gd_completion.errors import BoxError
+from gd_completion.geometry import Box3D
+from gd_completion.ros.stamp_sync import stamp_to_ns
+
+# visualization_msgs/msg/Marker constants (kept here so the pure logic needs no message import).
+MARKER_CUBE = 1
+MARKER_ADD = 0  # MODIFY has the same value
+IGNORE_LABEL = "ignore"
+
+
+@dataclass(frozen=True)
+class BoxSet:
+    """The boxes of one boxes message: its stamp and, per box, the frame its pose is given in."""
+
+    stamp_ns: int | None  # None when the message carries no header (an empty MarkerArray)
+    boxes: tuple[Box3D, ...]
+    frame_ids: tuple[str, ...]
+
+    def split_by_frame(self, frame_id: str) -> tuple[list[Box3D], int]:
+        """Boxes given in `frame_id`, and how many were in another frame (no tf here: those are skipped)."""
+        kept = [b for b, f in zip(self.boxes, self.frame_ids) if f == frame_id]
+        return kept, len(self.boxes) - len(kept)
+
+
+def parse_class_map(entries: Iterable[str]) -> dict[str, str]:
+    """["1:car", "Car:car", "Pedestrian:ignore"] -> {"1": "car", "Car": "car", "Pedestrian": "ignore"}."""
+    table: dict[str, str] = {}
+    for entry in entries:
+        key, sep, label = str(entry).rpartition(":")
+        key, label = key.strip(), label.strip().lower()
+        if not sep or not key or not label:
+            raise BoxError(f"class_map entry {entry!r} is not of the form 'class_id:label'")
+        table[key] = label
+    return table
+
+
+def map_label(raw: str, class_map: Mapping[str, str]) -> str:
+    """Detector class name/id -> our label: the class_map entry, else the raw name in lower case."""
+    raw = str(raw).strip()
+    return class_map.get(raw, raw.lower())
+
+
+def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
+    """Heading about +z of a quaternion (need not be unit; all-zero reads as identity, NaN stays NaN)."""
+    return math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
+
+
+def _box(pose: Any, size: Any, label: str, instance_id: int) -> Box3D:
+    p, q = pose.position, pose.orientation
+    return Box3D(center=(p.x, p.y, p.z), size=(size.x, size.y, size.z),
+                 yaw=yaw_from_quaternion(q.x, q.y, q.z, q.w), label=label, instance_id=instance_id)
+
+
+def markers_to_boxes(msg: Any, class_map: Mapping[str, str] | None = None) -> BoxSet:
+    """CUBE markers (pose = centre and heading, scale = length/width/height, `text` or else `ns` = class,
+    `id` = instance) -> BoxSet. Other marker types and DELETE/DELETEALL are ignored, but any marker's
+    header gives the stamp (so a lone DELETEALL marks a frame without vehicles)."""
+    class_map = class_map or {}
+    markers: Sequence[Any] = msg.markers
+    stamp = stamp_to_ns(markers[0].header.stamp) if len(markers) else None
+    boxes, frames = [], []
+    for m in markers:
+        if int(m.type) != MARKER_CUBE or int(m.action) != MARKER_ADD:
+            continue
+        boxes.append(_box(m.pose, m.scale, map_label(m.text or m.ns, class_map), int(m.id)))
+        frames.append(str(m.header.frame_id))
+    return BoxSet(stamp, tuple(boxes), tuple(frames))
+
+
+def _best_class(results: Sequence[Any]) -> str:
+    """class_id of the best-scoring hypothesis ("" when there is none; NaN scores rank last)."""
+    def score(r: Any) -> float:
+        value = float(r.hypothesis.score)
+        return value if not math.isnan(value) else -math.inf
+    return str(max(results, key=score).hypothesis.class_id) if len(results) else ""
+
+
+def _instance_id(raw: str, index: int) -> int:
+    try:
+        return int(raw)
+    except (TypeError, ValueError):
+        return index
+
+
+def detections_to_boxes(msg: Any, class_map: Mapping[str, str] | None = None) -> BoxSet:
+    """Detection3DArray -> BoxSet: bbox centre/size (x = length), class of the best-scoring hypothesis,
+    `id` as instance id when it is an integer (else the detection's index). A detection whose own header
+    names a frame uses it; otherwise the array's frame."""
+    class_map = class_map or {}
+    array_frame = str(msg.header.frame_id)
+    boxes, frames = [], []
+    for i, det in enumerate(msg.detections):
+        boxes.append(_box(det.bbox.center, det.bbox.size, map_label(_best_class(det.results), class_map), _instance_id(det.id, i)))
+        own = getattr(getattr(det, "header", None), "frame_id", "")
+        frames.append(str(own) or array_frame)
+    return BoxSet(stamp_to_ns(msg.header.stamp), tuple(boxes), tuple(frames))
