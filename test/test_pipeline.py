@@ -1,0 +1,104 @@
+"""Completion pipeline: batching, skips, flags and the mapping back to the cloud frame."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gd_completion.geometry import Box3D, normalize
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS
+from gd_completion.pipeline import LABEL_IDS, VehicleCompleter, completion_to_structured, resample_indices
+
+
+def box_surface_points(box: Box3D, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Points on the two visible sides of a box (a crude partial scan) in the cloud frame."""
+    length, width, height = box.size
+    local = rng.uniform(-0.5, 0.5, (n, 3)) * [length, width, height]
+    local[: n // 2, 1] = width / 2  # left side
+    local[n // 2:, 0] = length / 2  # front
+    cos, sin = math.cos(box.yaw), math.sin(box.yaw)
+    world = local @ np.array([[cos, sin, 0], [-sin, cos, 0], [0, 0, 1]]) + box.center
+    return world.astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def completer() -> VehicleCompleter:
+    return VehicleCompleter.from_checkpoint(None, min_points=20, margin=0.1, ground_clearance=0.0)
+
+
+@pytest.fixture()
+def scene() -> tuple[np.ndarray, list[Box3D]]:
+    rng = np.random.default_rng(0)
+    boxes = [
+        Box3D((10.0, 3.0, -0.9), (4.5, 1.8, 1.5), 0.3, "car", 7),
+        Box3D((-6.0, -8.0, -0.5), (7.0, 2.4, 3.0), -1.2, "truck", 9),
+        Box3D((20.0, -3.0, -0.9), (4.0, 1.8, 1.6), 0.0, "pedestrian", 11),
+    ]
+    clutter = rng.uniform(-40, 40, (5000, 3)).astype(np.float32)
+    clutter[:, 2] = -1.7
+    points = np.concatenate([box_surface_points(boxes[0], 3000, rng), box_surface_points(boxes[1], 400, rng),
+                             box_surface_points(boxes[2], 500, rng), clutter])
+    return points, boxes
+
+
+def test_shipped_weights_exist() -> None:
+    assert DEFAULT_WEIGHTS.is_file(), f"shipped checkpoint missing: {DEFAULT_WEIGHTS}"
+
+
+def test_completes_vehicles_in_their_boxes(completer: VehicleCompleter, scene) -> None:
+    points, boxes = scene
+    result = completer.complete_frame(points, boxes)
+    assert result.stats.completed == 2
+    assert result.stats.ignored_labels == 1
+    assert set(np.unique(result.instance_id)) == {7, 9}
+    for box in boxes[:2]:
+        rows = result.instance_id == box.instance_id
+        assert set(np.unique(result.label[rows])) == {LABEL_IDS[box.label]}
+        generated = result.points[rows & (result.generated == 1)]
+        assert len(generated) == completer.num_output
+        local = normalize(generated, box) * box.size[0]
+        inside = np.all(np.abs(local) <= np.array(box.size) / 2 + 0.5, axis=1)
+        assert inside.mean() > 0.9, f"only {inside.mean():.0%} of completed points near box {box.instance_id}"
+        measured = result.points[rows & (result.generated == 0)]
+        assert len(measured) > 0
+    structured = completion_to_structured(result)
+    assert structured.dtype.names == ("x", "y", "z", "instance_id", "label", "generated")
+    np.testing.assert_array_equal(structured["x"], result.points[:, 0])
+
+
+def test_batched_equals_single(completer: VehicleCompleter, scene) -> None:
+    points, boxes = scene
+    both = completer.complete_frame(points, boxes[:2])
+    first = completer.complete_frame(points, boxes[:1])
+    rows = both.instance_id == 7
+    np.testing.assert_allclose(both.points[rows], first.points, atol=1e-4)
+
+
+def test_skips_are_counted_not_raised(completer: VehicleCompleter, scene) -> None:
+    points, boxes = scene
+    bad_points = points.copy()
+    bad_points[:10] = np.nan
+    bad_points[10:15, 1] = np.inf
+    degenerate = [Box3D((1.0, 1.0, 0.0), (0.0, 1.0, 1.0), 0.0, "car", 1),
+                  Box3D((math.nan, 1.0, 0.0), (4.0, 1.0, 1.0), 0.0, "car", 2),
+                  Box3D((30.0, 30.0, 0.0), (4.0, 2.0, 1.5), 0.0, "car", 3)]
+    result = completer.complete_frame(bad_points, degenerate + boxes[:1])
+    assert result.stats.nonfinite_points == 15
+    assert result.stats.skipped["degenerate_box"] == 2
+    assert result.stats.skipped["too_few_points"] == 1
+    assert result.stats.completed == 1
+    assert np.isfinite(result.points).all()
+
+
+def test_empty_inputs(completer: VehicleCompleter) -> None:
+    result = completer.complete_frame(np.zeros((0, 3), np.float32), [])
+    assert result.points.shape == (0, 3) and result.stats.completed == 0
+
+
+def test_resample_indices_down_and_up() -> None:
+    rng = np.random.default_rng(1)
+    big, small = rng.normal(size=(3000, 3)).astype(np.float32), rng.normal(size=(5, 3)).astype(np.float32)
+    picks = resample_indices([3000, 5], [big, small], 1024)
+    assert len(np.unique(picks[0])) == 1024  # FPS picks distinct points
+    np.testing.assert_array_equal(picks[1], np.arange(1024) % 5)
