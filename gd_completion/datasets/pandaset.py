@@ -1,0 +1,186 @@
+"""PandaSet reader (npz/json layout): world-frame points and cuboids moved into the lidar frame by the pose."""
+from __future__ import annotations
+
+import json
+import math
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from gd_completion.datasets import DatasetFrame, normalise_label
+from gd_completion.errors import DataFormatError
+from gd_completion.geometry import Box3D
+
+SENSOR_NAMES = {0: "pandar64", 1: "pandargt"}
+SENSOR_TOPICS = {0: "/pandar64/points", 1: "/pandargt/points"}
+BOX_TOPICS = ("/pandar64/detections", "/pandar64/markers")
+# poses.json holds one lidar pose per frame (the Pandar64's); PandarGT has no separate extrinsic in this
+# layout, so both sensors are expressed in that frame.
+SENSOR_FRAME = "pandar64"
+
+# Hesai driver (HesaiLidar_General_ROS PointXYZIT) fields; `ring` is absent: the npz layout does not keep it.
+HESAI_DTYPE = np.dtype({"names": ["x", "y", "z", "intensity", "timestamp"],
+                        "formats": ["<f4", "<f4", "<f4", "<f4", "<f8"],
+                        "offsets": [0, 4, 8, 12, 16], "itemsize": 24})
+
+
+def quaternion_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
+    """3x3 rotation of a unit quaternion (normalised first)."""
+    q = np.array([w, x, y, z], dtype=np.float64)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _load_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DataFormatError(f"{path}: file missing") from None
+    except (OSError, ValueError) as error:
+        raise DataFormatError(f"{path}: cannot read JSON: {error}") from error
+
+
+def world_box_to_sensor(record: dict, rotation: np.ndarray, translation: np.ndarray, instance_id: int) -> Box3D:
+    """PandaSet cuboid (world; dimensions.y = length, heading = yaw + pi/2) -> Box3D in the sensor frame.
+
+    Roll and pitch of the sensor are dropped from the box orientation (Box3D has a yaw only).
+    """
+    try:
+        centre_w = np.array([record["position.x"], record["position.y"], record["position.z"]], dtype=np.float64)
+        size = (float(record["dimensions.y"]), float(record["dimensions.x"]), float(record["dimensions.z"]))
+        heading_w = float(record["yaw"]) + math.pi / 2.0
+    except (KeyError, TypeError, ValueError) as error:
+        raise DataFormatError(f"cuboid {record.get('uuid', '?')}: bad record: {error}") from error
+    centre = rotation.T @ (centre_w - translation)
+    direction = rotation.T @ np.array([math.cos(heading_w), math.sin(heading_w), 0.0])
+    yaw = math.atan2(direction[1], direction[0])
+    return Box3D(tuple(centre), size, yaw, normalise_label(str(record.get("label", ""))), instance_id)
+
+
+class PandaSetSequence:
+    """One sequence folder: lidar/NN.npz, lidar/poses.json, lidar/timestamps.json, cuboids/NN.json."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        self.lidar_dir = self.root / "lidar"
+        if not self.lidar_dir.is_dir():
+            raise DataFormatError(f"{self.root}: no lidar/ folder (expected a PandaSet sequence such as 002/)")
+        self.poses = _load_json(self.lidar_dir / "poses.json")
+        self.timestamps = _load_json(self.lidar_dir / "timestamps.json")
+        if not isinstance(self.poses, list) or not isinstance(self.timestamps, list):
+            raise DataFormatError(f"{self.lidar_dir}: poses.json and timestamps.json must be lists")
+        if len(self.poses) != len(self.timestamps):
+            raise DataFormatError(f"{self.lidar_dir}: {len(self.poses)} poses but {len(self.timestamps)} timestamps")
+
+    def frame_count(self) -> int:
+        """Frames listed in timestamps.json."""
+        return len(self.timestamps)
+
+    def frame_indices(self) -> list[int]:
+        """Frames that have a lidar file."""
+        return [i for i in range(self.frame_count()) if (self.lidar_dir / f"{i:02d}.npz").is_file()]
+
+    def missing_frames(self) -> list[int]:
+        """Frames listed in timestamps.json without a lidar file."""
+        present = set(self.frame_indices())
+        return [i for i in range(self.frame_count()) if i not in present]
+
+    def stamp_ns(self, index: int) -> int:
+        """Frame time (ns since the epoch) from lidar/timestamps.json."""
+        return int(round(float(self.timestamps[index]) * 1e9))
+
+    def pose(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """(R 3x3, t 3): sensor -> world of frame `index`."""
+        try:
+            p = self.poses[index]
+            rotation = quaternion_matrix(*(float(p["heading"][k]) for k in "wxyz"))
+            translation = np.array([float(p["position"][k]) for k in "xyz"])
+        except (KeyError, IndexError, TypeError, ValueError) as error:
+            raise DataFormatError(f"{self.lidar_dir / 'poses.json'}: frame {index}: bad pose: {error}") from error
+        return rotation, translation
+
+    def pose_matrix(self, index: int) -> np.ndarray:
+        """4x4 sensor -> world."""
+        rotation, translation = self.pose(index)
+        out = np.eye(4)
+        out[:3, :3], out[:3, 3] = rotation, translation
+        return out
+
+    def cuboids(self, index: int) -> list[dict]:
+        """Raw cuboid records of frame `index` (world frame)."""
+        records = _load_json(self.root / "cuboids" / f"{index:02d}.json")
+        if not isinstance(records, list):
+            raise DataFormatError(f"{self.root / 'cuboids' / f'{index:02d}.json'}: expected a list of cuboids")
+        return records
+
+    @cached_property
+    def track_ids(self) -> dict[str, int]:
+        """uuid -> stable integer id (order of first appearance over the sequence, from 1)."""
+        ids: dict[str, int] = {}
+        for path in sorted((self.root / "cuboids").glob("*.json")):
+            for record in _load_json(path):
+                ids.setdefault(str(record.get("uuid")), len(ids) + 1)
+        return ids
+
+    def load_lidar(self, index: int) -> dict[str, np.ndarray]:
+        """The npz arrays of frame `index` (xyz, intensity, t, sensor), checked."""
+        path = self.lidar_dir / f"{index:02d}.npz"
+        try:
+            with np.load(path) as data:
+                arrays = {k: data[k] for k in ("xyz", "intensity", "t", "sensor")}
+        except FileNotFoundError:
+            raise DataFormatError(f"{path}: lidar file missing") from None
+        except KeyError as error:
+            raise DataFormatError(f"{path}: missing array {error}") from error
+        except Exception as error:  # zip/pickle errors of a corrupt npz
+            raise DataFormatError(f"{path}: cannot read npz: {error}") from error
+        n = len(arrays["xyz"])
+        if arrays["xyz"].ndim != 2 or arrays["xyz"].shape[1] != 3 or any(
+                len(arrays[k]) != n for k in ("intensity", "t", "sensor")):
+            raise DataFormatError(f"{path}: arrays xyz/intensity/t/sensor have inconsistent shapes")
+        return arrays
+
+    def boxes(self, index: int, sensor: int = 0) -> tuple[list[Box3D], list[str], list[str]]:
+        """Cuboids of frame `index` seen by `sensor` (sensor_id -1 or `sensor`) in the sensor frame.
+
+        Returns (boxes, original labels, uuids).
+        """
+        rotation, translation = self.pose(index)
+        boxes, labels, uuids = [], [], []
+        for record in self.cuboids(index):
+            if int(record.get("cuboids.sensor_id", -1)) not in (-1, sensor):
+                continue
+            uuid = str(record.get("uuid"))
+            boxes.append(world_box_to_sensor(record, rotation, translation, self.track_ids.get(uuid, 0)))
+            labels.append(str(record.get("label", "")))
+            uuids.append(uuid)
+        return boxes, labels, uuids
+
+    def frame(self, index: int, sensors: Sequence[int] = (0,)) -> list[DatasetFrame]:
+        """One DatasetFrame per sensor for frame `index`, points in the lidar frame (float32)."""
+        arrays = self.load_lidar(index)
+        rotation, translation = self.pose(index)
+        stamp = self.stamp_ns(index)
+        boxes, labels, uuids = self.boxes(index, 0)
+        out = []
+        for sensor in sensors:
+            mask = arrays["sensor"] == sensor
+            xyz = ((arrays["xyz"][mask].astype(np.float64) - translation) @ rotation).astype(np.float32)
+            out.append(DatasetFrame(name=f"{index:02d}", stamp_ns=stamp, frame_id=SENSOR_FRAME, xyz=xyz,
+                                    intensity=arrays["intensity"][mask].astype(np.float32), boxes=boxes,
+                                    source_labels=labels, track_ids=uuids,
+                                    extra={"timestamp": arrays["t"][mask].astype(np.float64)}))
+        return out
+
+
+def hesai_cloud(frame: DatasetFrame) -> np.ndarray:
+    """Structured cloud with the Hesai driver's x, y, z, intensity, timestamp (s, float64) fields."""
+    out = np.zeros(len(frame.xyz), dtype=HESAI_DTYPE)
+    out["x"], out["y"], out["z"] = frame.xyz[:, 0], frame.xyz[:, 1], frame.xyz[:, 2]
+    out["intensity"] = frame.intensity
+    out["timestamp"] = frame.extra.get("timestamp", np.zeros(len(frame.xyz)))
+    return out

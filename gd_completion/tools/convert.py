@@ -1,0 +1,176 @@
+"""`gd-completion convert`: KITTI and PandaSet recordings to rosbag2 (PointCloud2, boxes, /tf_static)."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import itertools
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from gd_completion import bagio
+from gd_completion.datasets import DatasetFrame
+from gd_completion.errors import DataFormatError
+from gd_completion.pointcloud2 import write_points
+
+KITTI_TOPICS = ("/kitti/points", "/kitti/detections", "/kitti/markers")
+TF_STATIC = "/tf_static"
+
+
+@dataclass
+class SensorStream:
+    """One cloud topic of a conversion: its topic and how frames become structured clouds."""
+
+    topic: str
+    frames: Iterable[DatasetFrame]
+
+
+def kitti_cloud(frame: DatasetFrame) -> np.ndarray:
+    """x y z intensity float32 structured array (the KITTI velodyne layout)."""
+    out = np.empty(len(frame.xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
+    out["x"], out["y"], out["z"] = frame.xyz[:, 0], frame.xyz[:, 1], frame.xyz[:, 2]
+    out["intensity"] = frame.intensity
+    return out
+
+
+def write_bag(out: Path, storage: str, clouds: Sequence[tuple[str, str]], boxes_topics: tuple[str, str] | None,
+              frames: Iterable[tuple[str, DatasetFrame, np.ndarray]],
+              tf_static: Sequence[tuple[str, str, np.ndarray]] = (), overwrite: bool = False,
+              quiet: bool = False) -> dict[str, int]:
+    """Write frames to a new bag atomically.
+
+    `clouds`: (topic, frame key) pairs; `frames` yields (cloud topic, frame, structured cloud); boxes of the
+    first cloud topic go to `boxes_topics` (Detection3DArray topic, MarkerArray topic). Returns message counts.
+    """
+    counts: dict[str, int] = {}
+    start = time.perf_counter()
+    with bagio.atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer:
+        conns = {topic: bagio.add_connection(writer, topic, bagio.POINTCLOUD2) for topic, _ in clouds}
+        det_conn = mark_conn = None
+        if boxes_topics is not None:
+            det_conn = bagio.add_connection(writer, boxes_topics[0], bagio.DETECTION3D_ARRAY)
+            mark_conn = bagio.add_connection(writer, boxes_topics[1], bagio.MARKER_ARRAY)
+        box_topic_source = clouds[0][0]
+        tf_written = False
+        for topic, frame, cloud in frames:
+            ns = frame.stamp_ns
+            if tf_static and not tf_written:
+                tf_conn = bagio.add_connection(writer, TF_STATIC, bagio.TF_MESSAGE, latched=True)
+                writer.write(tf_conn, ns, bagio.serialize(bagio.tf_static_msg(tf_static, ns), bagio.TF_MESSAGE))
+                counts[TF_STATIC] = 1
+                tf_written = True
+            msg = bagio.pointcloud2_msg(write_points(cloud), frame.frame_id, ns)
+            writer.write(conns[topic], ns, bagio.serialize(msg, bagio.POINTCLOUD2))
+            counts[topic] = counts.get(topic, 0) + 1
+            if det_conn is not None and topic == box_topic_source:
+                det = bagio.detection3d_array_msg(frame.boxes, frame.frame_id, ns, ids=frame.track_ids)
+                writer.write(det_conn, ns, bagio.serialize(det, bagio.DETECTION3D_ARRAY))
+                mark = bagio.marker_array_msg(frame.boxes, frame.frame_id, ns, texts=frame.source_labels)
+                writer.write(mark_conn, ns, bagio.serialize(mark, bagio.MARKER_ARRAY))
+                for t in boxes_topics:
+                    counts[t] = counts.get(t, 0) + 1
+            if not quiet:
+                done = counts[box_topic_source] if box_topic_source in counts else 0
+                print(f"\r{out.name}: {done} frames, {time.perf_counter() - start:.1f} s", end="", file=sys.stderr)
+    if not quiet:
+        print(file=sys.stderr)
+    return counts
+
+
+def convert_kitti(src: Path, out: Path, *, storage: str = "mcap", limit: int | None = None,
+                  sequence: str | None = None, overwrite: bool = False, quiet: bool = False) -> dict[str, int]:
+    """KITTI object split, tracking sequence or raw drive -> bag with /kitti/points, detections, markers."""
+    from gd_completion.datasets import kitti
+
+    layout = kitti.detect_layout(src)
+    if layout == "object":
+        root = src / "training" if (src / "training" / "velodyne").is_dir() else src
+        frames = kitti.iter_object_frames(root, limit=limit)
+    elif layout == "tracking":
+        if sequence is None:
+            sequences = sorted(p.name for p in (src / "velodyne").iterdir() if p.is_dir())
+            sequence = sequences[0] if sequences else "0000"
+        frames = kitti.iter_tracking_frames(src, sequence, limit=limit)
+    else:
+        frames = kitti.iter_raw_frames(src, limit=limit)
+    iterator = iter(frames)
+    first = next(iterator, None)  # bad input fails here, before a bag is opened
+    if first is None:
+        raise DataFormatError(f"{src}: no frames to convert")
+    tf = []
+    if first.calib is not None:
+        tf.append((kitti.LIDAR_FRAME, kitti.CAMERA_FRAME, first.calib.rect_to_velo))
+    topic, det_topic, mark_topic = KITTI_TOPICS
+    return write_bag(out, storage, [(topic, kitti.LIDAR_FRAME)], (det_topic, mark_topic),
+                     ((topic, f, kitti_cloud(f)) for f in itertools.chain([first], iterator)), tf_static=tf,
+                     overwrite=overwrite, quiet=quiet)
+
+
+def convert_pandaset(src: Path, out: Path, *, storage: str = "mcap", limit: int | None = None,
+                     sensors: Sequence[int] = (0, 1), overwrite: bool = False, quiet: bool = False) -> dict[str, int]:
+    """PandaSet sequence folder (npz/json layout) -> bag with one cloud topic per sensor plus boxes."""
+    from gd_completion.datasets import pandaset
+
+    seq = pandaset.PandaSetSequence(src)
+    topics = [(pandaset.SENSOR_TOPICS[s], pandaset.SENSOR_FRAME) for s in sensors]
+    notes = [f"frame {i:02d}: lidar file missing, skipped" for i in seq.missing_frames()]
+    for note in notes:
+        if not quiet:
+            print(f"{src}: {note}", file=sys.stderr)
+
+    def frames():
+        for index in seq.frame_indices()[:limit]:
+            per_sensor = seq.frame(index, sensors)
+            for sensor, frame in zip(sensors, per_sensor):
+                yield pandaset.SENSOR_TOPICS[sensor], frame, pandaset.hesai_cloud(frame)
+
+    return write_bag(out, storage, topics, pandaset.BOX_TOPICS, frames(), overwrite=overwrite, quiet=quiet)
+
+
+def _run_kitti(args: argparse.Namespace) -> int:
+    counts = convert_kitti(Path(args.source), Path(args.output), storage=args.storage, limit=args.frames,
+                           sequence=args.sequence, overwrite=args.overwrite)
+    print(f"wrote {args.output}: " + ", ".join(f"{t} {n}" for t, n in counts.items()))
+    return 0
+
+
+def _run_pandaset(args: argparse.Namespace) -> int:
+    sensors = [int(s) for s in args.sensors.split(",") if s.strip()]
+    counts = convert_pandaset(Path(args.source), Path(args.output), storage=args.storage, limit=args.frames,
+                              sensors=sensors, overwrite=args.overwrite)
+    print(f"wrote {args.output}: " + ", ".join(f"{t} {n}" for t, n in counts.items()))
+    return 0
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("source", help="dataset folder")
+    parser.add_argument("output", help="output bag folder (must not exist)")
+    parser.add_argument("--storage", choices=bagio.STORAGES, default="mcap", help="rosbag2 storage (default mcap)")
+    parser.add_argument("--frames", type=int, default=None, help="convert at most this many frames")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `convert kitti`, `convert pandaset` (and `convert hesai` when that module is present)."""
+    parser = subparsers.add_parser("convert", help="convert a dataset to a rosbag2 recording",
+                                   description=__doc__)
+    sub = parser.add_subparsers(dest="dataset", required=True)
+    kitti_parser = sub.add_parser("kitti", help="KITTI object split, tracking split or raw drive",
+                                  description="Boxes are transformed to the lidar frame (velo_link); the object "
+                                              "split has no timestamps and gets 10 Hz synthetic stamps.")
+    _common(kitti_parser)
+    kitti_parser.add_argument("--sequence", default=None, help="tracking sequence (default: the first)")
+    kitti_parser.set_defaults(func=_run_kitti)
+    panda_parser = sub.add_parser("pandaset", help="PandaSet sequence (lidar/*.npz, cuboids/*.json)",
+                                  description="Points and cuboids move from the world frame into the lidar frame "
+                                              "using lidar/poses.json.")
+    _common(panda_parser)
+    panda_parser.add_argument("--sensors", default="0,1", help="sensor ids: 0 Pandar64, 1 PandarGT (default 0,1)")
+    panda_parser.set_defaults(func=_run_pandaset)
+    if importlib.util.find_spec("gd_completion.tools.convert_hesai") is not None:
+        importlib.import_module("gd_completion.tools.convert_hesai").add_hesai_parser(sub)

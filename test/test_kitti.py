@@ -1,0 +1,191 @@
+"""KITTI -> rosbag2 -> back: point counts, points and lidar-frame boxes equal the source; bad input fails cleanly."""
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gd_completion import bagio
+from gd_completion.cli import main
+from gd_completion.datasets import kitti
+from gd_completion.geometry import box_corners
+from gd_completion.pointcloud2 import read_points
+
+KITTI = "kitti-object-sample/training"
+
+
+def _calib(path: Path) -> np.ndarray:
+    """4x4 rectified camera -> lidar, parsed independently of the reader."""
+    rows = dict(line.split(":", 1) for line in path.read_text().splitlines() if ":" in line)
+    r0 = np.eye(4)
+    r0[:3, :3] = np.array(rows["R0_rect"].split(), float).reshape(3, 3)
+    tr = np.eye(4)
+    tr[:3, :] = np.array(rows["Tr_velo_to_cam"].split(), float).reshape(3, 4)
+    return np.linalg.inv(r0 @ tr)
+
+
+def _expected_corners(label_path: Path, calib_path: Path) -> tuple[list[np.ndarray], list[tuple]]:
+    """Devkit-style corners: built in the camera frame around the bottom centre, rotated by ry about y."""
+    cam_to_velo = _calib(calib_path)
+    out, sizes = [], []
+    for line in label_path.read_text().splitlines():
+        f = line.split()
+        if not f or f[0] == "DontCare":
+            continue
+        h, w, l, x, y, z, ry = map(float, f[8:15])
+        sizes.append((l, w, h))
+        xs = np.array([l, l, -l, -l, l, l, -l, -l]) / 2
+        ys = np.array([0, 0, 0, 0, -h, -h, -h, -h])
+        zs = np.array([w, -w, -w, w, w, -w, -w, w]) / 2
+        rot = np.array([[math.cos(ry), 0, math.sin(ry)], [0, 1, 0], [-math.sin(ry), 0, math.cos(ry)]])
+        cam = rot @ np.vstack([xs, ys, zs]) + np.array([[x], [y], [z]])
+        out.append((cam_to_velo @ np.vstack([cam, np.ones(8)]))[:3].T)
+    return out, sizes
+
+
+def _same_box(corners_a: np.ndarray, corners_b: np.ndarray, tol: float = 1e-4) -> bool:
+    """Equal as point sets (corner order conventions differ)."""
+    d = np.linalg.norm(corners_a[:, None, :] - corners_b[None, :, :], axis=2)
+    return bool((d.min(axis=1) < tol).all() and (d.min(axis=0) < tol).all())
+
+
+def _read_bag(path: Path) -> dict[str, list[tuple[int, object]]]:
+    out: dict[str, list] = {}
+    with bagio.open_bag(path) as reader:
+        for conn, stamp, raw in bagio.iter_raw(reader, reader.connections):
+            out.setdefault(conn.topic, []).append((stamp, bagio.deserialize(raw, conn.msgtype)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def kitti_bag(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("kitti") / "kitti_bag"
+    assert main(["convert", "kitti", str(shared_data / KITTI), str(out)]) == 0
+    return out
+
+
+def test_points_round_trip(kitti_bag: Path, shared_data: Path) -> None:
+    topics = _read_bag(kitti_bag)
+    scans = sorted((shared_data / KITTI / "velodyne").glob("*.bin"))
+    clouds = topics["/kitti/points"]
+    assert len(clouds) == len(scans) == 6
+    for k, ((stamp, msg), scan) in enumerate(zip(clouds, scans)):
+        source = np.fromfile(scan, dtype="<f4").reshape(-1, 4)
+        pts = read_points(msg)
+        assert msg.header.frame_id == "velo_link"
+        assert [f.name for f in msg.fields] == ["x", "y", "z", "intensity"]
+        assert len(pts) == len(source) == scan.stat().st_size // 16
+        np.testing.assert_array_equal(np.stack([pts[n] for n in ("x", "y", "z", "intensity")], 1), source)
+        assert stamp == bagio.stamp_ns(msg.header.stamp) == k * 100_000_000  # 10 Hz synthetic stamps
+
+
+def test_boxes_in_lidar_frame(kitti_bag: Path, shared_data: Path) -> None:
+    topics = _read_bag(kitti_bag)
+    root = shared_data / KITTI
+    n_vehicles = 0
+    for (_, det), (_, markers), scan in zip(topics["/kitti/detections"], topics["/kitti/markers"],
+                                            sorted((root / "velodyne").glob("*.bin"))):
+        expected, sizes = _expected_corners(root / "label_2" / f"{scan.stem}.txt", root / "calib" / f"{scan.stem}.txt")
+        for boxes in (bagio.boxes_from_detections(det), bagio.boxes_from_markers(markers)):
+            assert len(boxes) == len(expected)
+            np.testing.assert_allclose([b.size for b in boxes], sizes)
+            for box, corners in zip(boxes, expected):
+                # exact centre (mean of the corners), heading = the box's front edge direction projected to
+                # the lidar xy plane; the camera's 0.5 degree tilt is dropped, so corners agree to ~1 % of the length
+                np.testing.assert_allclose(box.center, corners.mean(axis=0), atol=1e-5)
+                front = corners[[0, 1, 4, 5]].mean(axis=0) - corners.mean(axis=0)
+                assert math.cos(box.yaw - math.atan2(front[1], front[0])) > math.cos(0.02), (scan.stem, box)
+                assert _same_box(box_corners(box), corners, tol=0.02 + 0.01 * box.size[0]), (scan.stem, box)
+        n_vehicles += sum(b.label in ("car", "van", "truck") for b in bagio.boxes_from_detections(det))
+        cubes = [m for m in markers.markers if m.type == bagio.MARKER_CUBE]
+        assert [m.ns for m in cubes] == [b.label for b in bagio.boxes_from_detections(det)]
+        assert det.header.frame_id == "velo_link"
+    assert n_vehicles > 0
+    tf = topics["/tf_static"][0][1].transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("velo_link", "camera_rect")
+
+
+def test_box_transform_matches_points(kitti_bag: Path, shared_data: Path) -> None:
+    """The best-sampled car of the sample has its points inside the converted box."""
+    frames = list(kitti.iter_object_frames(shared_data / KITTI))
+    from gd_completion.geometry import crop_boxes
+
+    best = max((len(idx), f.name) for f in frames for idx, b in zip(crop_boxes(f.xyz, f.boxes, 0.0), f.boxes)
+               if b.label == "car")
+    assert best[0] > 300
+
+
+def test_tracking_layout(shared_data: Path, tmp_path: Path) -> None:
+    """A tracking-style sequence built from the object frames gives the same boxes (with track ids)."""
+    root = tmp_path / "tracking"
+    (root / "velodyne" / "0000").mkdir(parents=True)
+    (root / "label_02").mkdir()
+    (root / "calib").mkdir()
+    src = shared_data / KITTI
+    (root / "velodyne" / "0000" / "000000.bin").symlink_to(src / "velodyne" / "000001.bin")
+    calib = (src / "calib" / "000001.txt").read_text().replace("R0_rect:", "R_rect").replace(
+        "Tr_velo_to_cam:", "Tr_velo_cam")
+    (root / "calib" / "0000.txt").write_text(calib)
+    rows = [f"0 {k + 7} {line}" for k, line in enumerate((src / "label_2" / "000001.txt").read_text().splitlines())]
+    (root / "label_02" / "0000.txt").write_text("\n".join(rows) + "\n")
+    tracked = next(kitti.iter_tracking_frames(root, "0000"))
+    obj = next(f for f in kitti.iter_object_frames(src) if f.name == "000001")
+    assert len(tracked.boxes) == len(obj.boxes)
+    for a, b in zip(tracked.boxes, obj.boxes):
+        assert np.allclose(a.center, b.center) and a.size == b.size and a.yaw == b.yaw and a.label == b.label
+    assert [b.instance_id for b in tracked.boxes] == [k + 7 for k in range(len(rows))
+                                                      if rows[k].split()[2] != "DontCare"]
+    out = tmp_path / "tracking_bag"
+    assert main(["convert", "kitti", str(root), str(out), "--storage", "sqlite3"]) == 0
+    assert len(_read_bag(out)["/kitti/points"]) == 1
+
+
+def test_raw_layout_with_tracklets(shared_data: Path, tmp_path: Path) -> None:
+    """Raw drive folder: timestamps.txt gives the stamps, tracklet translation is the bottom centre."""
+    drive = tmp_path / "2011_09_26_drive_0001_sync"
+    data = drive / "velodyne_points" / "data"
+    data.mkdir(parents=True)
+    for k in range(2):
+        (data / f"{k:010d}.bin").symlink_to(shared_data / KITTI / "velodyne" / f"00000{k}.bin")
+    (drive / "velodyne_points" / "timestamps.txt").write_text(
+        "2011-09-26 13:02:25.964389445\n2011-09-26 13:02:26.067700456\n")
+    (drive / "tracklet_labels.xml").write_text(
+        "<boost_serialization><tracklets><count>1</count><item><objectType>Car</objectType><h>1.5</h><w>1.6</w>"
+        "<l>4.0</l><first_frame>1</first_frame><poses><count>1</count><item><tx>10</tx><ty>2</ty><tz>-1.7</tz>"
+        "<rx>0</rx><ry>0</ry><rz>0.3</rz></item></poses></item></tracklets></boost_serialization>")
+    frames = list(kitti.iter_raw_frames(drive))
+    assert frames[1].stamp_ns - frames[0].stamp_ns == 103_311_011
+    assert frames[0].boxes == []
+    (box,) = frames[1].boxes
+    assert box.center == pytest.approx((10, 2, -0.95)) and box.size == (4.0, 1.6, 1.5) and box.yaw == 0.3
+
+
+@pytest.mark.parametrize("problem", ["bin_size", "missing_calib", "bad_calib"])
+def test_bad_input_exit_code_and_no_output(problem: str, shared_data: Path, tmp_path: Path,
+                                           capsys: pytest.CaptureFixture) -> None:
+    root = tmp_path / "training"
+    shutil.copytree(shared_data / KITTI / "label_2", root / "label_2")
+    shutil.copytree(shared_data / KITTI / "calib", root / "calib")
+    (root / "velodyne").mkdir()
+    for k in range(2):
+        (root / "velodyne" / f"00000{k}.bin").symlink_to(shared_data / KITTI / "velodyne" / f"00000{k}.bin")
+    if problem == "bin_size":
+        (root / "velodyne" / "000001.bin").unlink()
+        raw = (shared_data / KITTI / "velodyne" / "000001.bin").read_bytes()
+        (root / "velodyne" / "000001.bin").write_bytes(raw[:-6])
+        needle = "000001.bin"
+    elif problem == "missing_calib":
+        (root / "calib" / "000001.txt").unlink()
+        needle = "000001.txt"
+    else:
+        (root / "calib" / "000000.txt").write_text("P0: 1 2 3\n")
+        needle = "000000.txt"
+    out = tmp_path / "out_bag"
+    assert main(["convert", "kitti", str(root), str(out)]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "error" in err
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
