@@ -1,0 +1,207 @@
+"""`gd-completion complete`: copy a bag byte for byte and add the completed vehicles of every cloud."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gd_completion import bagio
+from gd_completion.errors import BagError
+from gd_completion.geometry import Box3D
+from gd_completion.pointcloud2 import read_xyz, write_points
+
+DEFAULT_CLOUD_TOPICS = ("/kitti/points", "/pandar64/points", "/points")
+
+
+@dataclass
+class CompletionSummary:
+    """What `complete` did."""
+
+    frames: int = 0
+    copied_messages: int = 0
+    vehicles_completed: int = 0
+    skipped: Counter = field(default_factory=Counter)
+    frames_without_boxes: int = 0
+    seconds: float = 0.0
+    output_topic: str = ""
+
+    def text(self) -> str:
+        """Human-readable summary."""
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(self.skipped.items())) or "none"
+        rate = self.frames / self.seconds if self.seconds > 0 else 0.0
+        return (f"{self.frames} frames ({rate:.1f} frames/s, {self.seconds:.1f} s), "
+                f"{self.vehicles_completed} vehicles completed, skipped: {reasons}; "
+                f"{self.frames_without_boxes} frames without boxes; {self.copied_messages} input messages copied; "
+                f"completions on {self.output_topic}")
+
+
+def default_output_topic(cloud_topic: str) -> str:
+    """'/kitti/points' -> '/kitti/completed'; '/points' -> '/completed'."""
+    parent = cloud_topic.rstrip("/").rpartition("/")[0]
+    return f"{parent}/completed"
+
+
+def pick_topics(reader: Any, cloud_topic: str | None, boxes_topic: str | None) -> tuple[str, str, str]:
+    """(cloud topic, boxes topic, boxes type) of a bag; BagError naming the bag when ambiguous or absent."""
+    types = {c.topic: c.msgtype for c in reader.connections}
+    clouds = sorted(t for t, ty in types.items() if ty == bagio.POINTCLOUD2)
+    if cloud_topic is None:
+        preferred = [t for t in DEFAULT_CLOUD_TOPICS if t in clouds]
+        if len(clouds) == 1 or preferred:
+            cloud_topic = clouds[0] if len(clouds) == 1 else preferred[0]
+        elif not clouds:
+            raise BagError(f"{reader.path}: no sensor_msgs/msg/PointCloud2 topic")
+        else:
+            raise BagError(f"{reader.path}: several PointCloud2 topics ({', '.join(clouds)}); choose --cloud-topic")
+    elif cloud_topic not in types:
+        raise BagError(f"{reader.path}: no topic {cloud_topic}")
+    elif types[cloud_topic] != bagio.POINTCLOUD2:
+        raise BagError(f"{reader.path}: {cloud_topic} has type {types[cloud_topic]}, not {bagio.POINTCLOUD2}")
+    if boxes_topic is None:
+        candidates = sorted(t for t, ty in types.items() if ty == bagio.DETECTION3D_ARRAY) + sorted(
+            t for t, ty in types.items() if ty == bagio.MARKER_ARRAY)
+        if not candidates:
+            raise BagError(f"{reader.path}: clouds without boxes: no {bagio.DETECTION3D_ARRAY} or "
+                           f"{bagio.MARKER_ARRAY} topic (give --boxes-topic)")
+        boxes_topic = candidates[0]
+    elif boxes_topic not in types:
+        raise BagError(f"{reader.path}: no topic {boxes_topic}")
+    if types[boxes_topic] not in (bagio.DETECTION3D_ARRAY, bagio.MARKER_ARRAY):
+        raise BagError(f"{reader.path}: {boxes_topic} has type {types[boxes_topic]}; expected "
+                       f"{bagio.DETECTION3D_ARRAY} or {bagio.MARKER_ARRAY}")
+    return cloud_topic, boxes_topic, types[boxes_topic]
+
+
+def read_boxes(reader: Any, topic: str, msgtype: str) -> dict[int, tuple[str, list[Box3D]]]:
+    """Header stamp (ns) -> (frame id, boxes) of every message on the boxes topic."""
+    out: dict[int, tuple[str, list[Box3D]]] = {}
+    conns = [c for c in reader.connections if c.topic == topic]
+    for _conn, _t, raw in bagio.iter_raw(reader, conns):
+        msg = bagio.deserialize(raw, msgtype, f"{reader.path} {topic}")
+        if msgtype == bagio.DETECTION3D_ARRAY:
+            hdr = msg.header
+        else:
+            adds = [m for m in msg.markers if m.action == bagio.MARKER_ADD]
+            if not adds:
+                continue
+            hdr = adds[0].header
+        out[bagio.stamp_ns(hdr.stamp)] = (hdr.frame_id, bagio.boxes_from_message(msg, msgtype))
+    return out
+
+
+def copy_connection(writer: Any, conn: Any, src: str | Path) -> Any:
+    """Add `conn` (topic, type, definition, hash, QoS) of an input bag to `writer` unchanged."""
+    msgdef, digest = conn.msgdef.data, conn.digest
+    if not msgdef or not digest:  # bags older than rosbag2 v8 store no definitions
+        if conn.msgtype not in bagio.typestore().types:
+            raise BagError(f"{src}: topic {conn.topic} has unknown type {conn.msgtype} and no definition")
+        msgdef, _ = bagio.typestore().generate_msgdef(conn.msgtype, ros_version=2)
+        digest = bagio.typestore().hash_rihs01(conn.msgtype)
+    ext = conn.ext
+    return writer.add_connection(conn.topic, conn.msgtype, msgdef=msgdef, rihs01=digest,
+                                 serialization_format=getattr(ext, "serialization_format", "cdr"),
+                                 offered_qos_profiles=getattr(ext, "offered_qos_profiles", ()) or ())
+
+
+class _Progress:
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total, self.enabled, self.start, self.last = total, enabled, time.perf_counter(), 0.0
+
+    def update(self, done: int) -> None:
+        now = time.perf_counter()
+        if not self.enabled or (now - self.last < 0.5 and done < self.total):
+            return
+        self.last = now
+        elapsed = now - self.start
+        eta = elapsed / done * (self.total - done) if done else float("nan")
+        print(f"\rcomplete: {done}/{self.total} frames, {elapsed:.1f} s, ETA {eta:.1f} s  ", end="",
+              file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.enabled:
+            print(file=sys.stderr)
+
+
+def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = None,
+                 boxes_topic: str | None = None, output_topic: str | None = None, model: str | None = None,
+                 storage: str = "mcap", completer: Any = None, overwrite: bool = False,
+                 progress: bool = True) -> CompletionSummary:
+    """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message."""
+    from gd_completion.pipeline import completion_to_structured
+
+    summary = CompletionSummary()
+    start = time.perf_counter()
+    with bagio.open_bag(src) as reader:
+        cloud_topic, boxes_topic, boxes_type = pick_topics(reader, cloud_topic, boxes_topic)
+        output_topic = output_topic or default_output_topic(cloud_topic)
+        summary.output_topic = output_topic
+        if output_topic in {c.topic for c in reader.connections}:
+            raise BagError(f"{src}: output topic {output_topic} exists in the input bag; choose --output-topic")
+        boxes = read_boxes(reader, boxes_topic, boxes_type)
+        if completer is None:
+            from gd_completion.pipeline import VehicleCompleter
+
+            completer = VehicleCompleter.from_checkpoint(model or None)
+        total = sum(c.msgcount for c in reader.connections if c.topic == cloud_topic)
+        bar = _Progress(total, progress)
+        with bagio.atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer:
+            conns = {}
+            for conn in reader.connections:
+                conns[conn.id] = copy_connection(writer, conn, src)
+            out_conn = bagio.add_connection(writer, output_topic, bagio.POINTCLOUD2)
+            for conn, timestamp, raw in bagio.iter_raw(reader, reader.connections):
+                writer.write(conns[conn.id], timestamp, raw)
+                summary.copied_messages += 1
+                if conn.topic != cloud_topic:
+                    continue
+                cloud = bagio.deserialize(raw, bagio.POINTCLOUD2, f"{src} {cloud_topic}")
+                stamp = bagio.stamp_ns(cloud.header.stamp)
+                frame_boxes: list[Box3D] = []
+                if stamp not in boxes:
+                    summary.frames_without_boxes += 1
+                else:
+                    box_frame, frame_boxes = boxes[stamp]
+                    if box_frame and box_frame != cloud.header.frame_id:
+                        summary.skipped["boxes_in_other_frame"] += len(frame_boxes)
+                        frame_boxes = []
+                result = completer.complete_frame(read_xyz(cloud), frame_boxes)
+                summary.vehicles_completed += int(result.stats.completed)
+                summary.skipped.update(result.stats.skipped)
+                msg = bagio.pointcloud2_msg(write_points(completion_to_structured(result)),
+                                            cloud.header.frame_id, stamp)
+                writer.write(out_conn, timestamp, bagio.serialize(msg, bagio.POINTCLOUD2))
+                summary.frames += 1
+                bar.update(summary.frames)
+        bar.close()
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+def _run(args: argparse.Namespace) -> int:
+    summary = complete_bag(args.input, args.output, cloud_topic=args.cloud_topic, boxes_topic=args.boxes_topic,
+                           output_topic=args.output_topic, model=args.model, storage=args.storage,
+                           overwrite=args.overwrite, progress=not args.quiet)
+    print(f"wrote {args.output}: {summary.text()}")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `complete`."""
+    parser = subparsers.add_parser("complete", help="complete the vehicles of every frame of a bag",
+                                   description=__doc__)
+    parser.add_argument("input", help="input rosbag2 (folder, .mcap or .db3)")
+    parser.add_argument("output", help="output bag folder (written atomically; must not exist)")
+    parser.add_argument("--cloud-topic", default=None, help="PointCloud2 topic (default: the only one, or "
+                        + ", ".join(DEFAULT_CLOUD_TOPICS) + ")")
+    parser.add_argument("--boxes-topic", default=None,
+                        help="Detection3DArray or MarkerArray topic (default: the first Detection3DArray topic)")
+    parser.add_argument("--output-topic", default=None, help="completed cloud topic (default: <namespace>/completed)")
+    parser.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
+    parser.add_argument("--storage", choices=bagio.STORAGES, default="mcap", help="output storage (default mcap)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+    parser.add_argument("--quiet", action="store_true", help="no progress line")
+    parser.set_defaults(func=_run)

@@ -1,0 +1,89 @@
+"""`gd-completion render`: bird's-eye PNG (and per-vehicle views) of one frame of a bag."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gd_completion import bagio
+from gd_completion.errors import BagError
+from gd_completion.geometry import normalize
+from gd_completion.pointcloud2 import read_points, read_xyz
+from gd_completion.render import render_birdseye, render_vehicles
+from gd_completion.tools.complete import default_output_topic, pick_topics
+
+
+def _messages_at(reader: Any, topic: str, msgtype: str, stamp: int) -> Any | None:
+    conns = [c for c in reader.connections if c.topic == topic]
+    for _c, _t, raw in bagio.iter_raw(reader, conns):
+        msg = bagio.deserialize(raw, msgtype, f"{reader.path} {topic}")
+        header = msg.header if hasattr(msg, "header") else (msg.markers[-1].header if msg.markers else None)
+        if header is not None and bagio.stamp_ns(header.stamp) == stamp:
+            return msg
+    return None
+
+
+def render_bag_frame(bag: str | Path, out: str | Path, *, frame: int = 0, cloud_topic: str | None = None,
+                     boxes_topic: str | None = None, completed_topic: str | None = None,
+                     vehicles_out: str | Path | None = None) -> list[Path]:
+    """Render frame `frame` (index among the cloud messages) of `bag`; returns the written PNG paths."""
+    with bagio.open_bag(bag) as reader:
+        cloud_topic, boxes_topic, boxes_type = pick_topics(reader, cloud_topic, boxes_topic)
+        completed_topic = completed_topic or default_output_topic(cloud_topic)
+        conns = [c for c in reader.connections if c.topic == cloud_topic]
+        cloud = None
+        for k, (_c, _t, raw) in enumerate(bagio.iter_raw(reader, conns)):
+            if k == frame:
+                cloud = bagio.deserialize(raw, bagio.POINTCLOUD2, f"{bag} {cloud_topic}")
+                break
+        if cloud is None:
+            raise BagError(f"{bag}: {cloud_topic} has no frame {frame}")
+        stamp = bagio.stamp_ns(cloud.header.stamp)
+        boxes_msg = _messages_at(reader, boxes_topic, boxes_type, stamp)
+        boxes = bagio.boxes_from_message(boxes_msg, boxes_type) if boxes_msg is not None else []
+        completed = None
+        if completed_topic in {c.topic for c in reader.connections}:
+            completed = _messages_at(reader, completed_topic, bagio.POINTCLOUD2, stamp)
+    points = read_xyz(cloud)
+    comp = read_points(completed) if completed is not None else None
+    generated = comp[comp["generated"] == 1] if comp is not None and "generated" in comp.dtype.names else comp
+    written = [render_birdseye(out, points, boxes, generated,
+                               title=f"{Path(bag).name} {cloud_topic} frame {frame}: input (blue), boxes, "
+                                     f"completion (red)")]
+    if vehicles_out is not None and comp is not None and "instance_id" in comp.dtype.names:
+        xyz = np.stack([comp["x"], comp["y"], comp["z"]], axis=1).astype(np.float32)
+        items = []
+        for box in boxes:
+            rows = comp["instance_id"] == box.instance_id
+            if not rows.any():
+                continue
+            measured = normalize(xyz[rows & (comp["generated"] == 0)], box)
+            gen = normalize(xyz[rows & (comp["generated"] == 1)], box)
+            items.append((f"{box.label} #{box.instance_id}", measured, gen, None))
+        if items:
+            written.append(render_vehicles(vehicles_out, items))
+    return written
+
+
+def _run(args: argparse.Namespace) -> int:
+    paths = render_bag_frame(args.bag, args.output, frame=args.frame, cloud_topic=args.cloud_topic,
+                             boxes_topic=args.boxes_topic, completed_topic=args.completed_topic,
+                             vehicles_out=args.vehicles)
+    for path in paths:
+        print(f"wrote {path}")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `render`."""
+    parser = subparsers.add_parser("render", help="bird's-eye PNG of one frame of a bag", description=__doc__)
+    parser.add_argument("bag", help="rosbag2 (e.g. the output of `complete`)")
+    parser.add_argument("output", help="PNG path")
+    parser.add_argument("--frame", type=int, default=0, help="index of the cloud message (default 0)")
+    parser.add_argument("--cloud-topic", default=None)
+    parser.add_argument("--boxes-topic", default=None)
+    parser.add_argument("--completed-topic", default=None, help="default: <namespace>/completed")
+    parser.add_argument("--vehicles", default=None, help="also write per-vehicle side/top views to this PNG")
+    parser.set_defaults(func=_run)
