@@ -1,0 +1,242 @@
+"""GGDNet: generation branch (multi-resolution encoder + tree decoder) and graph-guided deformation."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .config import GGDConfig
+from .ops import ball_group, farthest_point_sample, flat_index, gather_points, knn_graph, neighbour_mean
+
+
+class GGDOutput(NamedTuple):
+    """Every tensor the loss and the pipeline need (B = batch)."""
+
+    coarse: Tensor            # P_s (B, N_s, 3), tree decoder output
+    control: Tensor           # P_c (B, N_c, 3), FPS subset of the input
+    control_deformed: Tensor  # P_c' (B, N_c, 3), first N_c points of P_o
+    completion: Tensor        # P_o (B, N_o, 3) = P_g + offsets
+    generated: Tensor         # P_g (B, N_o, 3) = concat(P_c, P_s)
+    neighbours: Tensor        # kNN graph of P_g (B, N_o, k), used by the Laplacian loss
+    control_index: Tensor     # (B, N_c) indices of P_c in the input
+
+
+class LinearBN(nn.Module):
+    """Point-wise Linear + BatchNorm + ReLU on (..., C); in eval mode BN is folded into the Linear."""
+
+    def __init__(self, cin: int, cout: int, relu: bool = True) -> None:
+        super().__init__()
+        self.linear = nn.Linear(cin, cout, bias=False)
+        self.bn = nn.BatchNorm1d(cout)
+        self.relu = relu
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.training:
+            shape = x.shape
+            y = self.bn(self.linear(x.reshape(-1, shape[-1]))).view(shape[:-1] + (-1,))
+        else:
+            scale = self.bn.weight * torch.rsqrt(self.bn.running_var + self.bn.eps)
+            y = F.linear(x, self.linear.weight * scale[:, None], self.bn.bias - self.bn.running_mean * scale)
+        return torch.relu(y) if self.relu else y
+
+
+def _mlp_bn(cin: int, widths: tuple[int, ...]) -> nn.Sequential:
+    layers = []
+    for w in widths:
+        layers.append(LinearBN(cin, w))
+        cin = w
+    return nn.Sequential(*layers)
+
+
+class MultiResolutionEncoder(nn.Module):
+    """f_i = concat(g(h0(P_i)), g(h1_i(h0(P_i)))) for P_i = FPS prefixes of N/1, N/2, N/8 points; MLP -> code."""
+
+    def __init__(self, cfg: GGDConfig) -> None:
+        super().__init__()
+        self.fractions = cfg.encoder_fractions
+        self.h0 = _mlp_bn(3, cfg.encoder_h0)
+        self.h1 = nn.ModuleList(_mlp_bn(cfg.encoder_h0[-1], cfg.encoder_h1) for _ in cfg.encoder_fractions)
+        cin = len(cfg.encoder_fractions) * (cfg.encoder_h0[-1] + cfg.encoder_h1[-1])
+        layers: list[nn.Module] = []
+        for w in cfg.code_hidden:
+            layers += [nn.Linear(cin, w), nn.ReLU()]
+            cin = w
+        layers.append(nn.Linear(cin, cfg.code_dim))
+        self.head = nn.Sequential(*layers)
+
+    def forward(self, partial: Tensor, order: Tensor) -> Tensor:
+        n = partial.shape[1]
+        h0 = self.h0(partial)                      # point-wise, so h0(P_i) is a subset of h0(P)
+        feats = []
+        for frac, h1 in zip(self.fractions, self.h1):
+            h = h0 if frac == 1 else gather_points(h0, order[:, : max(n // frac, 1)])
+            feats += [h.amax(1), h1(h).amax(1)]
+        return self.head(torch.cat(feats, -1))
+
+
+class TreeDecoder(nn.Module):
+    """TopNet tree: the code is split into arity[0] nodes, each node (with the code) into arity[l] children."""
+
+    def __init__(self, cfg: GGDConfig) -> None:
+        super().__init__()
+        d, code = cfg.tree_node_dim, cfg.code_dim
+        self.arity = cfg.tree_arity
+        self.node_dim = d
+        self.root = nn.Sequential(nn.Linear(code, cfg.tree_hidden[0]), nn.ReLU(),
+                                  nn.Linear(cfg.tree_hidden[0], self.arity[0] * d), nn.Tanh())
+        self.node_in = nn.ModuleList()
+        self.code_in = nn.ModuleList()
+        self.rest = nn.ModuleList()
+        for level, a in enumerate(self.arity[1:], start=1):
+            last = level == len(self.arity) - 1
+            self.node_in.append(nn.Linear(d, cfg.tree_hidden[0], bias=False))
+            self.code_in.append(nn.Linear(code, cfg.tree_hidden[0]))   # code term computed once per shape
+            layers: list[nn.Module] = [nn.ReLU()]
+            cin = cfg.tree_hidden[0]
+            for w in cfg.tree_hidden[1:]:
+                layers += [nn.Linear(cin, w), nn.ReLU()]
+                cin = w
+            layers.append(nn.Linear(cin, a * (3 if last else d)))
+            if not last:
+                layers.append(nn.Tanh())
+            self.rest.append(nn.Sequential(*layers))
+
+    def forward(self, code: Tensor) -> Tensor:
+        b = code.shape[0]
+        nodes = self.root(code).view(b, self.arity[0], self.node_dim)
+        for node_in, code_in, rest in zip(self.node_in, self.code_in, self.rest):
+            h = node_in(nodes) + code_in(code).unsqueeze(1)
+            nodes = rest(h).view(b, -1, self.node_dim if rest[-1].__class__ is nn.Tanh else 3)
+        return nodes
+
+
+class LocalFeatures(nn.Module):
+    """F(p_i; P): input points grouped in balls of radii s*r around p_i, shared MLP, max-pool, concat scales.
+
+    The ball of radius s*r takes its M points from the FPS prefix of N/s^2 input points (same density
+    of M points per ball area at every scale; one kNN of M per scale instead of M*max(s) on all N).
+    """
+
+    def __init__(self, cfg: GGDConfig) -> None:
+        super().__init__()
+        self.radius, self.m, self.scales = cfg.radius, cfg.ball_m, cfg.ball_scales
+        self.mlp = _mlp_bn(3, cfg.local_widths)
+        self.out_dim = len(cfg.ball_scales) * cfg.local_widths[-1]
+        self.register_buffer("inv_radius", 1.0 / (cfg.radius * torch.tensor(cfg.ball_scales, dtype=torch.float32)),
+                             persistent=False)
+
+    def forward(self, centers: Tensor, partial: Tensor, order: Tensor) -> Tensor:
+        b, q, _ = centers.shape
+        n = partial.shape[1]
+        groups = []
+        for s in self.scales:
+            size = max(n // (s * s), 1)
+            if s == 1 or size >= n:
+                groups.append(ball_group(centers, partial, s * self.radius, self.m))
+            else:
+                sub = order[:, :size]
+                local = ball_group(centers, gather_points(partial, sub), s * self.radius, self.m)
+                groups.append(torch.gather(sub, 1, local.reshape(b, -1)).view(b, q, self.m))
+        idx = torch.stack(groups, 2)                                                    # (B,Q,S,M)
+        grouped = gather_points(partial, idx)                                           # (B,Q,S,M,3)
+        rel = (grouped - centers[:, :, None, None, :]) * self.inv_radius.view(1, 1, -1, 1, 1)
+        feat = self.mlp(rel).amax(3)                                                    # (B,Q,S,C)
+        return feat.reshape(b, q, self.out_dim)
+
+
+class GraphConv(nn.Module):
+    """Pixel2Mesh graph convolution: y = x W0 + (A x) W1 + b, A = kNN adjacency / k."""
+
+    def __init__(self, cin: int, cout: int) -> None:
+        super().__init__()
+        self.self_lin = nn.Linear(cin, cout)
+        self.nbr_lin = nn.Linear(cin, cout, bias=False)
+
+    def forward(self, x: Tensor, nbr_flat: Tensor, k: int) -> Tensor:
+        # A(x W1) == (A x) W1; apply the linear map first when it narrows the features.
+        if self.nbr_lin.out_features <= self.nbr_lin.in_features:
+            nb = neighbour_mean(self.nbr_lin(x), nbr_flat, k)
+        else:
+            nb = self.nbr_lin(neighbour_mean(x, nbr_flat, k))
+        return self.self_lin(x) + nb
+
+
+class GResNet(nn.Module):
+    """G-ResNet: input graph conv, residual blocks of two graph convs, output graph conv to 3-D offsets."""
+
+    def __init__(self, cfg: GGDConfig, local_dim: int) -> None:
+        super().__init__()
+        w, self.k = cfg.gcn_width, cfg.knn_k
+        self.inp = GraphConv(local_dim + 3 + 2, w)
+        # f_final is the same for every point and rows of A sum to 1: its W0 and W1 terms merge into one.
+        self.code_lin = nn.Linear(cfg.code_dim, w, bias=False)
+        self.blocks = nn.ModuleList(nn.ModuleList([GraphConv(w, w), GraphConv(w, w)]) for _ in range(cfg.gcn_blocks))
+        self.out = GraphConv(w, 3)
+        with torch.no_grad():
+            for lin in (self.out.self_lin, self.out.nbr_lin):
+                lin.weight.mul_(cfg.offset_init_gain)
+            self.out.self_lin.bias.zero_()
+
+    def forward(self, x: Tensor, code: Tensor, knn: Tensor) -> Tensor:
+        nbr = flat_index(knn, knn.shape[1])
+        h = torch.relu(self.inp(x, nbr, self.k) + self.code_lin(code).unsqueeze(1))
+        for g1, g2 in self.blocks:
+            h = (h + torch.relu(g2(torch.relu(g1(h, nbr, self.k)), nbr, self.k))) * 0.5
+        return self.out(h, nbr, self.k)
+
+
+class GGDNet(nn.Module):
+    """Graph-Guided Deformation network (Shi et al., RA-L 2021); see docs/MODEL.md."""
+
+    def __init__(self, config: GGDConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or GGDConfig()
+        self.encoder = MultiResolutionEncoder(self.config)
+        self.decoder = TreeDecoder(self.config)
+        self.local = LocalFeatures(self.config)
+        self.deform = GResNet(self.config, self.local.out_dim)
+
+    def _check(self, partial: Tensor) -> None:
+        if partial.dim() != 3 or partial.shape[-1] != 3:
+            raise ValueError(f"GGDNet expects partial clouds (B, N, 3), got {tuple(partial.shape)}")
+        if partial.shape[1] < self.config.num_control:
+            raise ValueError(f"GGDNet needs >= num_control={self.config.num_control} input points, "
+                             f"got {partial.shape[1]}")
+
+    def _generate(self, partial: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        self._check(partial)
+        n = partial.shape[1]
+        nc = self.config.num_control
+        longest = max([nc] + [n // f for f in self.config.encoder_fractions if f > 1]
+                      + [n // (s * s) for s in self.config.ball_scales if s > 1])
+        longest = min(longest, n)
+        order = farthest_point_sample(partial, longest)    # nested: N/2, N/8 and N_c sets are prefixes
+        code = self.encoder(partial, order)
+        coarse = self.decoder(code)
+        control_index = order[:, :nc]
+        control = gather_points(partial, control_index)
+        return code, coarse, control, control_index, order
+
+    def generate(self, partial: Tensor) -> Tensor:
+        """Generation-only branch (ablation baseline): P_g = concat(P_c, P_s), (B, N_o, 3)."""
+        _, coarse, control, _, _ = self._generate(partial)
+        return torch.cat([control, coarse], 1)
+
+    def forward(self, partial: Tensor) -> GGDOutput:
+        code, coarse, control, control_index, order = self._generate(partial)
+        b, nc = control.shape[:2]
+        p_g = torch.cat([control, coarse], 1)
+        knn = knn_graph(p_g, self.config.knn_k)             # recomputed every forward
+        label = torch.zeros(b, p_g.shape[1], 2, dtype=p_g.dtype, device=p_g.device)
+        label[:, :nc, 0] = 1.0
+        label[:, nc:, 1] = 1.0
+        x = torch.cat([self.local(p_g, partial, order), p_g, label], -1)
+        p_o = p_g + self.deform(x, code, knn)
+        return GGDOutput(coarse=coarse, control=control, control_deformed=p_o[:, :nc], completion=p_o,
+                         generated=p_g, neighbours=knn, control_index=control_index)
+
+    def num_parameters(self) -> int:
+        """Number of trainable parameters."""
+        return sum(p.numel() for p in self.parameters() if p.requires_grad)

@@ -1,0 +1,216 @@
+"""GGD-Net model tests: ops, shapes, gradients, losses on hand-computed values, checkpoints."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from gd_completion.errors import CheckpointError
+from gd_completion.model import (GGDConfig, GGDNet, chamfer_l2, chamfer_l2_directional, farthest_point_sample,
+                                 load_model, read_checkpoint_metadata, save_checkpoint)
+from gd_completion.model.losses import ggd_loss, laplacian_coordinates, laplacian_loss, smooth_l1
+from gd_completion.model.ops import ball_group, knn_graph
+
+TINY = GGDConfig(num_input=64, num_output=96, num_control=32, encoder_h0=(16, 32), encoder_h1=(32,),
+                 code_hidden=(32,), code_dim=32, tree_arity=(4, 4, 4), tree_node_dim=8, tree_hidden=(32, 16),
+                 radius=0.2, ball_m=4, local_widths=(8, 8), knn_k=4, gcn_width=16, gcn_blocks=1)
+
+
+def _cloud(b: int, n: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(b, n, 3, generator=g) - 0.5
+
+
+def test_default_config_sizes_and_roundtrip():
+    cfg = GGDConfig()
+    assert (cfg.num_input, cfg.num_output, cfg.num_control, cfg.num_coarse) == (1024, 2048, 256, 1792)
+    assert GGDConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ValueError, match="tree_arity"):
+        GGDConfig(tree_arity=(8, 8))
+    with pytest.raises(ValueError, match="unknown"):
+        GGDConfig.from_dict({**cfg.to_dict(), "bogus": 1})
+
+
+def test_forward_shapes_and_completion_layout():
+    torch.manual_seed(0)
+    model = GGDNet(TINY).eval()
+    x = _cloud(3, 64)
+    out = model(x)
+    assert out.coarse.shape == (3, 64, 3)
+    assert out.control.shape == (3, 32, 3) and out.control_deformed.shape == (3, 32, 3)
+    assert out.completion.shape == (3, 96, 3) and out.generated.shape == (3, 96, 3)
+    assert torch.equal(out.completion[:, :32], out.control_deformed)
+    assert torch.equal(out.generated, torch.cat([out.control, out.coarse], 1))
+    assert torch.equal(model.generate(x), out.generated)
+    assert torch.isfinite(out.completion).all()
+    # eval mode is deterministic
+    assert torch.equal(model(x).completion, out.completion)
+
+
+def test_control_points_are_fps_subset_of_input():
+    model = GGDNet(TINY).eval()
+    x = _cloud(2, 64, seed=3)
+    out = model(x)
+    idx = farthest_point_sample(x, 32)
+    assert torch.equal(out.control_index, idx)
+    assert torch.equal(out.control, torch.gather(x, 1, idx.unsqueeze(-1).expand(-1, -1, 3)))
+    assert all(len(set(row.tolist())) == 32 for row in idx)
+
+
+def test_gradient_reaches_every_parameter_group():
+    torch.manual_seed(0)
+    model = GGDNet(TINY).train()
+    x, gt = _cloud(4, 64, 1), _cloud(4, 96, 2)
+    losses = ggd_loss(model(x), gt, lam=3.0)
+    losses["total"].backward()
+    for group in ("encoder", "decoder", "local", "deform"):
+        params = [(n, p) for n, p in model.named_parameters() if n.startswith(group)]
+        assert params, group
+        for name, p in params:
+            assert p.grad is not None and p.grad.abs().sum() > 0, f"no gradient for {name}"
+
+
+def test_fps_picks_farthest_point():
+    pts = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0.1, 0, 0], [5, 0, 0], [2.6, 0, 0]]])
+    assert farthest_point_sample(pts, 3).tolist() == [[0, 3, 4]]
+    assert farthest_point_sample(pts, 5)[0, :4].tolist() == [0, 3, 4, 1]
+    # nested prefixes
+    x = _cloud(2, 200, seed=5)
+    assert torch.equal(farthest_point_sample(x, 50), farthest_point_sample(x, 120)[:, :50])
+
+
+def test_fps_duplicates_and_oversampling():
+    pts = torch.tensor([[[1.0, 1, 1]] * 4 + [[2.0, 2, 2]] * 3])
+    idx = farthest_point_sample(pts, 10)
+    assert idx.shape == (1, 10) and idx.min() >= 0 and idx.max() < 7
+    assert set(pts[0, idx[0, :2]][:, 0].tolist()) == {1.0, 2.0}
+    same = torch.zeros(2, 30, 3)
+    idx = farthest_point_sample(same, 8)
+    assert idx.shape == (2, 8) and idx.max() < 30
+    big = torch.rand(1, 3000, 3)   # low-memory path (no dense matrix)
+    big[0, 1500:] = big[0, :1500]  # every point twice
+    idx = farthest_point_sample(big, 64)
+    assert len(set((idx[0] % 1500).tolist())) == 64
+
+
+def test_knn_graph_recomputed_and_correct():
+    pts = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [3, 0, 0], [3.5, 0, 0]]])
+    assert sorted(knn_graph(pts, 1)[0, :, 0].tolist()) == [0, 1, 2, 3]
+    assert knn_graph(pts, 1)[0, :, 0].tolist() == [1, 0, 3, 2]
+    model = GGDNet(TINY).eval()
+    x = _cloud(1, 64, 7)
+    k1 = model(x).neighbours
+    k2 = model(x * torch.tensor([1.0, 3.0, 0.2])).neighbours
+    assert not torch.equal(k1, k2)
+    assert torch.equal(k1, knn_graph(model(x).generated, TINY.knn_k))
+
+
+def test_ball_group_radius_padding():
+    centers = torch.tensor([[[0.0, 0, 0]]])
+    pts = torch.tensor([[[0.1, 0, 0], [0.05, 0, 0], [3, 0, 0], [0.2, 0, 0]]])
+    assert ball_group(centers, pts, 0.15, 3).tolist() == [[[1, 0, 1]]]
+    assert ball_group(centers, pts, 0.25, 3).tolist() == [[[1, 0, 3]]]
+
+
+def test_chamfer_hand_computed():
+    a = torch.tensor([[[0.0, 0, 0], [1, 0, 0]]])
+    b = torch.tensor([[[0.0, 0, 1], [2, 0, 0], [1, 1, 0]]])
+    # a->b: 0 -> min(1, 4, 2)=1 ; 1 -> min(2, 1, 1)=1  => mean 1
+    # b->a: (0,0,1) -> 1 ; (2,0,0) -> 1 ; (1,1,0) -> 1 => mean 1
+    ab, ba = chamfer_l2_directional(a, b)
+    assert ab.item() == pytest.approx(1.0) and ba.item() == pytest.approx(1.0)
+    c = torch.tensor([[[0.0, 0, 0], [0, 3, 0]]])
+    d = torch.tensor([[[0.0, 1, 0]]])
+    # c->d: 1, 4 -> 2.5 ; d->c: 1 -> 1  => 3.5
+    assert chamfer_l2(c, d).item() == pytest.approx(3.5)
+    assert chamfer_l2(torch.cat([a, a]), torch.cat([a, a])).tolist() == [0.0, 0.0]
+
+
+def test_smooth_l1_hand_computed():
+    # beta = 1/sigma^2 = 0.25 ; |0.1| -> 0.5*0.01/0.25 = 0.02 ; |1.0| -> 1 - 0.125 = 0.875
+    pred = torch.tensor([[[0.1, 1.0, 0.0]]])
+    assert smooth_l1(pred, torch.zeros_like(pred)).item() == pytest.approx(0.895)
+    pred2 = torch.tensor([[[0.1, 0, 0], [0, 0, 0]]])
+    assert smooth_l1(pred2, torch.zeros_like(pred2)).item() == pytest.approx(0.01)
+
+
+def test_laplacian_loss_hand_computed():
+    pts = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
+    knn = torch.tensor([[[1, 2], [0, 2], [0, 1]]])
+    delta = laplacian_coordinates(pts, knn)
+    assert delta[0, 0].tolist() == pytest.approx([-0.5, -0.5, 0])
+    assert delta[0, 1].tolist() == pytest.approx([1.0, -0.5, 0])
+    # translating everything keeps the shape
+    assert laplacian_loss(pts + 0.3, pts, knn).item() == pytest.approx(0.0, abs=1e-12)
+    moved = pts.clone()
+    moved[0, 0, 2] = 1.0   # lift point 0 by 1 in z: delta_0 z += 1, delta_1 and delta_2 z -= 0.5
+    assert laplacian_loss(moved, pts, knn).item() == pytest.approx((1 + 0.25 + 0.25) / 3)
+
+
+def test_ggd_loss_terms():
+    torch.manual_seed(0)
+    model = GGDNet(TINY).eval()
+    x, gt = _cloud(2, 64, 1), _cloud(2, 96, 2)
+    out = model(x)
+    l0, l3 = ggd_loss(out, gt, lam=0.0), ggd_loss(out, gt, lam=3.0)
+    assert l0["cd_coarse"].item() == pytest.approx(1000 * chamfer_l2(out.coarse, gt).mean().item(), rel=1e-5)
+    expect = l0["cd_coarse"] + 1000 * l0["control"] + 0.5 * l0["shape"]
+    assert l0["total"].item() == pytest.approx(expect.item(), rel=1e-5)
+    assert (l3["total"] - l0["total"]).item() == pytest.approx(3 * l0["cd_fine"].item(), rel=1e-4)
+
+
+def test_checkpoint_roundtrip(tmp_path):
+    torch.manual_seed(1)
+    model = GGDNet(TINY).train()
+    model(_cloud(4, 64))   # update BN running statistics
+    model.eval()
+    path = save_checkpoint(tmp_path / "m.pt", model, epoch=3, note="hi", metrics={"cd": 1.5})
+    loaded = load_model(path)
+    x = _cloud(2, 64, 9)
+    assert loaded.config == TINY and not loaded.training
+    assert torch.equal(loaded(x).completion, model(x).completion)
+    meta = read_checkpoint_metadata(path)
+    assert meta["epoch"] == 3 and meta["note"] == "hi" and meta["metrics"] == {"cd": 1.5}
+    assert meta["config"] == TINY.to_dict() and "state_dict" not in meta
+
+
+def test_checkpoint_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="missing.pt.*not found"):
+        load_model(tmp_path / "missing.pt")
+    model = GGDNet(TINY)
+    good = save_checkpoint(tmp_path / "good.pt", model)
+    raw = good.read_bytes()
+    trunc = tmp_path / "trunc.pt"
+    trunc.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(CheckpointError, match="trunc.pt"):
+        load_model(trunc)
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"\x00not a checkpoint" * 10)
+    with pytest.raises(CheckpointError, match="junk.pt"):
+        load_model(junk)
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    with pytest.raises(CheckpointError, match="other.pt.*not a gd_completion"):
+        load_model(other)
+    data = torch.load(good, weights_only=True)
+    data["config"]["gcn_width"] = 24
+    bad = tmp_path / "mismatch.pt"
+    torch.save(data, bad)
+    with pytest.raises(CheckpointError, match="mismatch.pt.*do not match"):
+        load_model(bad)
+    data["config"]["tree_arity"] = [3, 3]
+    torch.save(data, bad)
+    with pytest.raises(CheckpointError, match="mismatch.pt.*invalid config"):
+        load_model(bad)
+
+
+def test_default_size_forward_backward():
+    torch.manual_seed(0)
+    model = GGDNet().train()
+    x = _cloud(2, 1024)
+    out = model(x)
+    assert out.completion.shape == (2, 2048, 3) and out.coarse.shape == (2, 1792, 3)
+    ggd_loss(out, _cloud(2, 2048, 4), lam=3.0)["total"].backward()
+    assert all(p.grad is not None for p in model.parameters())
+    assert math.isfinite(float(out.completion.detach().abs().max()))
