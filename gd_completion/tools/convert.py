@@ -68,9 +68,9 @@ def write_bag(out: Path, storage: str, clouds: Sequence[tuple[str, str]], boxes_
             writer.write(conns[topic], ns, bagio.serialize(msg, bagio.POINTCLOUD2))
             counts[topic] = counts.get(topic, 0) + 1
             if det_conn is not None and topic == box_topic_source:
-                det = bagio.detection3d_array_msg(frame.boxes, frame.frame_id, ns, ids=frame.track_ids)
+                det = bagio.detection3d_array_msg(frame.boxes, frame.frame_id, ns)
                 writer.write(det_conn, ns, bagio.serialize(det, bagio.DETECTION3D_ARRAY))
-                mark = bagio.marker_array_msg(frame.boxes, frame.frame_id, ns, texts=frame.source_labels)
+                mark = bagio.marker_array_msg(frame.boxes, frame.frame_id, ns)
                 writer.write(mark_conn, ns, bagio.serialize(mark, bagio.MARKER_ARRAY))
                 for t in boxes_topics:
                     counts[t] = counts.get(t, 0) + 1
@@ -112,23 +112,31 @@ def convert_kitti(src: Path, out: Path, *, storage: str = "mcap", limit: int | N
 
 
 def convert_pandaset(src: Path, out: Path, *, storage: str = "mcap", limit: int | None = None,
-                     sensors: Sequence[int] = (0, 1), overwrite: bool = False, quiet: bool = False) -> dict[str, int]:
-    """PandaSet sequence folder (npz/json layout) -> bag with one cloud topic per sensor plus boxes."""
+                     sensors: Sequence[int] = (0, 1), start: int = 0, overwrite: bool = False,
+                     quiet: bool = False) -> dict[str, int]:
+    """PandaSet sequence folder (npz/json layout) -> bag with one cloud topic per sensor plus boxes.
+
+    Frames from `start` on (at most `limit`); frames without a lidar file are skipped with a note.
+    """
     from gd_completion.datasets import pandaset
 
     seq = pandaset.PandaSetSequence(src)
-    topics = [(pandaset.SENSOR_TOPICS[s], pandaset.SENSOR_FRAME) for s in sensors]
-    notes = [f"frame {i:02d}: lidar file missing, skipped" for i in seq.missing_frames()]
-    for note in notes:
-        if not quiet:
-            print(f"{src}: {note}", file=sys.stderr)
+    indices = [i for i in seq.frame_indices() if i >= start][:limit]
+    if not indices:
+        raise DataFormatError(f"{src}: no lidar frames from frame {start} on")
+    for i in seq.missing_frames():
+        if indices[0] <= i <= indices[-1] and not quiet:
+            print(f"{src}: frame {i:02d}: lidar file missing, skipped", file=sys.stderr)
+    for index in (sensor for sensor in sensors if sensor not in pandaset.SENSOR_TOPICS):
+        raise DataFormatError(f"{src}: unknown sensor id {index} (0 = Pandar64, 1 = PandarGT)")
 
     def frames():
-        for index in seq.frame_indices()[:limit]:
+        for index in indices:
             per_sensor = seq.frame(index, sensors)
             for sensor, frame in zip(sensors, per_sensor):
                 yield pandaset.SENSOR_TOPICS[sensor], frame, pandaset.hesai_cloud(frame)
 
+    topics = [(pandaset.SENSOR_TOPICS[s], pandaset.SENSOR_FRAME) for s in sensors]
     return write_bag(out, storage, topics, pandaset.BOX_TOPICS, frames(), overwrite=overwrite, quiet=quiet)
 
 
@@ -142,7 +150,7 @@ def _run_kitti(args: argparse.Namespace) -> int:
 def _run_pandaset(args: argparse.Namespace) -> int:
     sensors = [int(s) for s in args.sensors.split(",") if s.strip()]
     counts = convert_pandaset(Path(args.source), Path(args.output), storage=args.storage, limit=args.frames,
-                              sensors=sensors, overwrite=args.overwrite)
+                              sensors=sensors, start=args.start, overwrite=args.overwrite)
     print(f"wrote {args.output}: " + ", ".join(f"{t} {n}" for t, n in counts.items()))
     return 0
 
@@ -171,6 +179,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                               "using lidar/poses.json.")
     _common(panda_parser)
     panda_parser.add_argument("--sensors", default="0,1", help="sensor ids: 0 Pandar64, 1 PandarGT (default 0,1)")
+    panda_parser.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
     panda_parser.set_defaults(func=_run_pandaset)
     if importlib.util.find_spec("gd_completion.tools.convert_hesai") is not None:
         importlib.import_module("gd_completion.tools.convert_hesai").add_hesai_parser(sub)

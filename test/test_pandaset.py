@@ -1,0 +1,108 @@
+"""PandaSet -> rosbag2: per-sensor clouds in the lidar frame, stamps, and boxes that stay put in the world."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gd_completion import bagio
+from gd_completion.cli import main
+from gd_completion.datasets.pandaset import PandaSetSequence
+from gd_completion.pointcloud2 import read_points
+
+SEQ = "pandaset-002"
+START = 55
+INDICES = [55, 59, 60, 61]  # 56-58 have no lidar file; the lidar drives about 3 m over these frames
+
+
+def _rotate(q: dict, v: np.ndarray) -> np.ndarray:
+    """Rotate rows of `v` by the unit quaternion q (dict w, x, y, z): v + 2 u x (u x v + w v)."""
+    w = q["w"]
+    u = np.array([q["x"], q["y"], q["z"]])
+    norm = math.sqrt(w * w + u @ u)
+    w, u = w / norm, u / norm
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+@pytest.fixture(scope="module")
+def panda_bag(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("panda") / "panda_bag"
+    assert main(["convert", "pandaset", str(shared_data / SEQ), str(out), "--start", str(START),
+                 "--frames", str(len(INDICES))]) == 0
+    topics: dict[str, list] = {}
+    with bagio.open_bag(out) as reader:
+        for conn, stamp, raw in bagio.iter_raw(reader, reader.connections):
+            topics.setdefault(conn.topic, []).append((stamp, bagio.deserialize(raw, conn.msgtype)))
+    return out, topics
+
+
+def test_clouds_per_sensor_in_lidar_frame(panda_bag: tuple[Path, dict], shared_data: Path) -> None:
+    _, topics = panda_bag
+    root = shared_data / SEQ
+    poses = json.loads((root / "lidar" / "poses.json").read_text())
+    stamps = json.loads((root / "lidar" / "timestamps.json").read_text())
+    assert sorted(topics) == ["/pandar64/detections", "/pandar64/markers", "/pandar64/points", "/pandargt/points"]
+    for sensor, topic in ((0, "/pandar64/points"), (1, "/pandargt/points")):
+        assert len(topics[topic]) == len(INDICES)
+        for index, (stamp, msg) in zip(INDICES, topics[topic]):
+            data = np.load(root / "lidar" / f"{index:02d}.npz")
+            mask = data["sensor"] == sensor
+            pts = read_points(msg)
+            assert msg.header.frame_id == "pandar64"
+            assert [f.name for f in msg.fields] == ["x", "y", "z", "intensity", "timestamp"]
+            assert len(pts) == int(mask.sum()) > 10_000
+            assert stamp == bagio.stamp_ns(msg.header.stamp) == round(stamps[index] * 1e9)
+            xyz = np.stack([pts["x"], pts["y"], pts["z"]], 1).astype(np.float64)
+            world = _rotate(poses[index]["heading"], xyz) + [poses[index]["position"][k] for k in "xyz"]
+            np.testing.assert_allclose(world, data["xyz"][mask], atol=2e-3)
+            np.testing.assert_array_equal(pts["timestamp"], data["t"][mask])
+            np.testing.assert_array_equal(pts["intensity"], data["intensity"][mask])
+        if sensor == 0:  # the sensor sits at the origin of its own frame: ranges look like a lidar's
+            r = np.hypot(xyz[:, 0], xyz[:, 1])
+            assert np.median(r) < 40 and r.min() < 5
+
+
+def test_stationary_car_stays_put_in_world(panda_bag: tuple[Path, dict], shared_data: Path) -> None:
+    _, topics = panda_bag
+    root = shared_data / SEQ
+    poses = json.loads((root / "lidar" / "poses.json").read_text())
+    cuboids = {i: json.loads((root / "cuboids" / f"{i:02d}.json").read_text()) for i in INDICES}
+    parked = [c for c in cuboids[START] if c["label"] == "Car" and c["stationary"] and c["cuboids.sensor_id"] != 1
+              and all(any(d["uuid"] == c["uuid"] for d in frame) for frame in cuboids.values())]
+    assert parked
+    car = min(parked, key=lambda c: math.hypot(c["position.x"], c["position.y"]))
+    world_centres, sensor_centres, ids = [], [], set()
+    for index, (_, det) in zip(INDICES, topics["/pandar64/detections"]):
+        boxes = bagio.boxes_from_detections(det)
+        centres = np.array([b.center for b in boxes])
+        world = _rotate(poses[index]["heading"], centres) + [poses[index]["position"][k] for k in "xyz"]
+        record = next(c for c in cuboids[index] if c["uuid"] == car["uuid"])
+        k = int(np.argmin(np.linalg.norm(world - [record[f"position.{a}"] for a in "xyz"], axis=1)))
+        np.testing.assert_allclose(world[k], [record[f"position.{a}"] for a in "xyz"], atol=1e-6)
+        box = boxes[k]
+        assert box.label == "car" and box.size == pytest.approx(
+            (record["dimensions.y"], record["dimensions.x"], record["dimensions.z"]))
+        heading = _rotate(poses[index]["heading"], np.array([[math.cos(box.yaw), math.sin(box.yaw), 0.0]]))[0]
+        assert math.cos(math.atan2(heading[1], heading[0]) - (record["yaw"] + math.pi / 2)) > math.cos(0.03)
+        world_centres.append(world[k])
+        sensor_centres.append(centres[k])
+        ids.add(box.instance_id)
+    assert len(ids) == 1  # stable track id
+    world_spread = np.ptp(np.array(world_centres), axis=0).max()
+    assert world_spread < 0.2  # parked: stays put in the world ...
+    assert np.ptp(np.array(sensor_centres), axis=0).max() > 5 * world_spread + 0.5  # ... while the lidar moves
+
+
+def test_missing_frames_are_listed(shared_data: Path) -> None:
+    seq = PandaSetSequence(shared_data / SEQ)
+    assert seq.missing_frames() == [56, 57, 58, 71]
+    assert len(seq.frame_indices()) == 76
+
+
+def test_not_a_pandaset_folder(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "bag"
+    assert main(["convert", "pandaset", str(tmp_path), str(out)]) == 2
+    assert "lidar/" in capsys.readouterr().err and not out.exists()
