@@ -1,0 +1,189 @@
+"""Training of GGDNet on (partial, complete) pairs: lambda schedule, validation, resumable checkpoints."""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from .errors import CheckpointError, DataFormatError
+from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
+from .model.config import GGDConfig
+from .model.losses import CD_SCALE, chamfer_l2, ggd_loss
+from .model.network import GGDNet
+
+log = logging.getLogger(__name__)
+
+ArrayPair = Sequence[Any]   # (partial (S, N, 3), complete (S, N_o, 3)) numpy arrays or tensors
+
+
+@dataclass
+class TrainSettings:
+    """Optimisation settings (paper: 70 epochs, 40 generation-only, lambda 3, Adam, batch 32)."""
+
+    epochs: int = 70
+    generation_epochs: int = 40     # lambda = 0 for these epochs, then `lam`
+    lam: float = 3.0
+    alpha: float = 1000.0
+    beta: float = 0.5
+    batch_size: int = 32
+    lr: float = 1e-3                # paper: 0.01; see docs/MODEL.md
+    max_grad_norm: float = 10.0     # gradient clipping (0 disables)
+    seed: int = 0
+    device: str = "cpu"
+    time_budget_s: float | None = None
+
+    def lam_at(self, epoch: int) -> float:
+        """Lambda of the 0-based `epoch`."""
+        return 0.0 if epoch < self.generation_epochs else self.lam
+
+
+@dataclass
+class TrainResult:
+    """What `train` produced."""
+
+    out_dir: Path
+    last_path: Path
+    best_path: Path | None
+    epochs_done: int
+    stopped_early: bool
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+def _as_tensor(a: Any, name: str) -> torch.Tensor:
+    t = torch.as_tensor(np.asarray(a, dtype=np.float32)) if not isinstance(a, torch.Tensor) else a.float()
+    if t.dim() != 3 or t.shape[-1] != 3:
+        raise DataFormatError(f"{name}: expected (S, N, 3) points, got shape {tuple(t.shape)}")
+    if not torch.isfinite(t).all():
+        raise DataFormatError(f"{name}: contains NaN or infinite coordinates")
+    return t.contiguous()
+
+
+def _pairs(data: ArrayPair, name: str, cfg: GGDConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    if len(data) != 2:
+        raise DataFormatError(f"{name}: expected a (partial, complete) pair")
+    partial, complete = _as_tensor(data[0], f"{name} partial"), _as_tensor(data[1], f"{name} complete")
+    if partial.shape[0] != complete.shape[0] or partial.shape[0] == 0:
+        raise DataFormatError(f"{name}: {partial.shape[0]} partial vs {complete.shape[0]} complete samples")
+    if partial.shape[1] != cfg.num_input or complete.shape[1] != cfg.num_output:
+        raise DataFormatError(f"{name}: expected partial (S, {cfg.num_input}, 3) and complete (S, {cfg.num_output}, 3), "
+                              f"got {tuple(partial.shape)} and {tuple(complete.shape)}")
+    return partial, complete
+
+
+@torch.inference_mode()
+def evaluate(model: GGDNet, partial: torch.Tensor, complete: torch.Tensor, batch_size: int,
+             device: str | torch.device) -> dict[str, float]:
+    """Mean Chamfer (x1000) of P_o (`cd_completion`), of the generation branch P_g (`cd_generated`) and P_s."""
+    was_training = model.training
+    model.eval()
+    sums = {"cd_completion": 0.0, "cd_generated": 0.0, "cd_coarse": 0.0}
+    for s in range(0, partial.shape[0], batch_size):
+        x, gt = partial[s:s + batch_size].to(device), complete[s:s + batch_size].to(device)
+        out = model(x)
+        sums["cd_completion"] += chamfer_l2(out.completion, gt).sum().item()
+        sums["cd_generated"] += chamfer_l2(out.generated, gt).sum().item()
+        sums["cd_coarse"] += chamfer_l2(out.coarse, gt).sum().item()
+    model.train(was_training)
+    return {k: CD_SCALE * v / partial.shape[0] for k, v in sums.items()}
+
+
+def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir: str | Path,
+          settings: TrainSettings | None = None, *, resume: bool = False, **overrides: Any) -> TrainResult:
+    """Train GGDNet; writes `out_dir/last.pt` (resumable) every epoch and `out_dir/best.pt` (best val P_o CD).
+
+    `overrides` set TrainSettings fields (epochs=, batch_size=, lr=, generation_epochs=, lam=, device=,
+    seed=, time_budget_s=...). With `resume=True` and an existing last.pt, training continues from it
+    (its model config and optimizer state; the epoch count and schedule come from `settings`).
+    """
+    settings = settings or TrainSettings()
+    for k, v in overrides.items():
+        if not hasattr(settings, k):
+            raise TypeError(f"train: unknown setting {k!r}")
+        setattr(settings, k, v)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    last_path, best_path = out_dir / "last.pt", out_dir / "best.pt"
+    device = torch.device(settings.device)
+    start = time.monotonic()
+
+    torch.manual_seed(settings.seed)
+    model = GGDNet(config)
+    optimizer_state = None
+    start_epoch, history, best = 0, [], math.inf
+    if resume and last_path.is_file():
+        data = read_checkpoint(last_path)
+        if "optimizer" not in data or "epoch" not in data:
+            raise CheckpointError(f"checkpoint {last_path}: not a resumable training checkpoint")
+        model = model_from_checkpoint(data, last_path)
+        config = model.config
+        optimizer_state = data["optimizer"]
+        start_epoch = int(data["epoch"])
+        history = list(data.get("history", []))
+        best = float(data.get("best_cd", math.inf))
+        log.info("resuming from %s at epoch %d", last_path, start_epoch)
+    tr_x, tr_y = _pairs(train_data, "training data", config)
+    va_x, va_y = _pairs(val_data, "validation data", config)
+    model.to(device).train()
+    optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr)
+    if optimizer_state is not None:
+        optimizer.load_state_dict(optimizer_state)
+        for group in optimizer.param_groups:
+            group["lr"] = settings.lr
+    log.info("training GGDNet (%d parameters) on %d samples, validating on %d, device %s",
+             model.num_parameters(), tr_x.shape[0], va_x.shape[0], device)
+
+    stopped = False
+    done = start_epoch
+    for epoch in range(start_epoch, settings.epochs):
+        lam = settings.lam_at(epoch)
+        model.train()
+        g = torch.Generator().manual_seed(settings.seed * 100003 + epoch)   # resumable shuffling
+        perm = torch.randperm(tr_x.shape[0], generator=g)
+        sums: dict[str, float] = {}
+        seen = 0
+        t0 = time.monotonic()
+        for s in range(0, perm.numel(), settings.batch_size):
+            if settings.time_budget_s is not None and time.monotonic() - start > settings.time_budget_s:
+                stopped = True
+                break
+            idx = perm[s:s + settings.batch_size]
+            x, gt = tr_x[idx].to(device), tr_y[idx].to(device)
+            losses = ggd_loss(model(x), gt, lam=lam, alpha=settings.alpha, beta=settings.beta)
+            optimizer.zero_grad(set_to_none=True)
+            losses["total"].backward()
+            if settings.max_grad_norm > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), settings.max_grad_norm)
+            optimizer.step()
+            for k, v in losses.items():
+                sums[k] = sums.get(k, 0.0) + v.item() * idx.numel()
+            seen += idx.numel()
+        if seen == 0:   # time budget ran out before the first batch of this epoch
+            save_checkpoint(last_path, model, optimizer=optimizer.state_dict(), epoch=epoch, history=history,
+                            settings=asdict(settings), best_cd=best)
+            log.info("time budget of %s s reached before epoch %d; stopping", settings.time_budget_s, epoch + 1)
+            break
+        record = {"epoch": epoch + 1, "lam": lam, "seconds": time.monotonic() - t0,
+                  **{f"train_{k}": v / seen for k, v in sums.items()},
+                  **{f"val_{k}": v for k, v in evaluate(model, va_x, va_y, settings.batch_size, device).items()}}
+        history.append(record)
+        log.info("epoch %d/%d lam %.1f loss %.4f | val CD x1e3 completion %.4f generated %.4f | %.1fs%s",
+                 epoch + 1, settings.epochs, lam, record["train_total"], record["val_cd_completion"],
+                 record["val_cd_generated"], record["seconds"], " (partial epoch, time budget)" if stopped else "")
+        done = epoch if stopped else epoch + 1     # a partial epoch is redone on resume
+        extra = {"epoch": done, "history": history, "settings": asdict(settings), "best_cd": best}
+        if not stopped and record["val_cd_completion"] < best:
+            best = record["val_cd_completion"]
+            extra["best_cd"] = best
+            save_checkpoint(best_path, model, **extra)
+        save_checkpoint(last_path, model, optimizer=optimizer.state_dict(), **extra)
+        if stopped:
+            log.info("time budget of %.0f s reached; stopping", settings.time_budget_s)
+            break
+    return TrainResult(out_dir=out_dir, last_path=last_path, best_path=best_path if best_path.is_file() else None,
+                       epochs_done=done, stopped_early=stopped, history=history)
