@@ -197,12 +197,17 @@ class ScanAssembler:
         self._points: list[np.ndarray] = []
         self._rotations: list[np.ndarray] = []
 
+    @property
+    def model_name(self) -> str:
+        """The model of the stream (fixed by the first packets), or the requested one before any packet."""
+        return self._fmt.name if self._fmt is not None else self.model
+
     def add(self, packets: Sequence[bytes] | np.ndarray) -> list[np.ndarray]:
         """Decode `packets` and return the scans they complete (possibly none), oldest first."""
         if len(packets) == 0:
             return []
-        source = f"{self.source} (packets {self.packets_seen}..{self.packets_seen + len(packets) - 1})"
-        fmt, array = packets_to_array(packets, self.model if self._fmt is None else self._fmt.name, source)
+        source = f"{self.source} (batch from stream packet {self.packets_seen})"
+        fmt, array = packets_to_array(packets, self.model_name, source)
         if self._fmt is None:
             _check_calibration(fmt, self.calibration, source)
             self._fmt = fmt

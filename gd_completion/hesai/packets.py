@@ -120,7 +120,7 @@ def detect_model(packet: bytes | np.ndarray, source: str = "<packets>") -> str:
         return "pandar64"
     raise DataFormatError(
         f"{source}: packet of {size} bytes starting {data.hex()} is not a Pandar40/40P (1262 bytes, ffee) "
-        "or Pandar64 (1194/1198 bytes, eeff) packet"
+        "or Pandar64 (1194/1198 bytes, eeff) packet (truncated packet or unsupported model)"
     )
 
 
@@ -138,20 +138,22 @@ def packets_to_array(
             raise DataFormatError(f"{source}: no packets to decode")
         first = packets[0]
         array = None
-    name = detect_model(first, source) if model == "auto" else model
+    name = detect_model(first, f"{source}: packet 0") if model == "auto" else model
     if name not in MODELS:
         raise DataFormatError(f"{source}: unknown Hesai model {name!r} (expected one of {sorted(MODELS)})")
     fmt = MODELS[name]
     if array is None:
         sizes = np.fromiter((len(p) for p in packets), dtype=np.int64, count=len(packets))
-        bad = np.flatnonzero(sizes != len(first))
-        if bad.size or len(first) not in fmt.dtypes:
-            index = int(bad[0]) if bad.size else 0
+        valid = np.isin(sizes, list(fmt.dtypes))
+        expected = int(sizes[valid][0]) if valid.any() else fmt.sizes[0]
+        bad = np.flatnonzero(sizes != expected)
+        if bad.size:
+            index = int(bad[0])
             raise DataFormatError(
                 f"{source}: packet {index} has {int(sizes[index])} bytes; {fmt.name} packets have "
                 f"{' or '.join(map(str, fmt.sizes))} bytes (truncated packet or wrong model)"
             )
-        array = np.frombuffer(b"".join(packets), dtype=np.uint8).reshape(len(packets), len(first))
+        array = np.frombuffer(b"".join(packets), dtype=np.uint8).reshape(len(packets), expected)
     if array.shape[1] not in fmt.dtypes:
         raise DataFormatError(
             f"{source}: packets have {array.shape[1]} bytes; {fmt.name} packets have "

@@ -68,15 +68,17 @@ def iter_scans(source: Path, assembler: ScanAssembler, *, topic: str | None = No
         conns = _input_connections(reader, topic, source)
         for conn, bag_ns, raw in bagio.iter_raw(reader, conns):
             msg = bagio.deserialize(raw, PANDAR_SCAN, f"{source} ({conn.topic} at {bag_ns})")
+            assembler.source = f"{source} ({conn.topic} at {bag_ns})"
             packets = [bytes(p.data[: int(p.size)]) for p in msg.packets]
             if not packets:
                 continue
+            scans = assembler.add(packets)
             if host_time:
-                fmt, array = packets_to_array(packets, assembler.model, f"{source} ({conn.topic} at {bag_ns})")
+                fmt, array = packets_to_array(packets, assembler.model_name, f"{source} ({conn.topic} at {bag_ns})")
                 sensor = packet_time_s(fmt, parse_packets(fmt, array))
                 host = np.array([bagio.stamp_ns(p.stamp) for p in msg.packets], dtype=np.float64) * 1e-9
                 offset_s = float(np.median(host - sensor))
-            for scan in assembler.add(packets):
+            for scan in scans:
                 emitted += 1
                 if emitted == 1 and not keep_partial:
                     continue  # the recording starts mid-rotation
