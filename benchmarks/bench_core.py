@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import array
+import os
 import statistics
 import time
 from types import SimpleNamespace
@@ -80,6 +81,8 @@ def bench_crop(repeats: int = 30) -> float:
 
 
 def main() -> None:
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    print(f"# {os.cpu_count()} cores, load average {load} (wall-clock medians; timings inflate under load)")
     print(f"decode read_xyz  {N_POINTS} pts (Hesai layout, 26 B/pt): {bench_decode() * 1e3:7.3f} ms")
     print(f"crop_boxes       {N_POINTS} pts, {N_BOXES} boxes:           {bench_crop() * 1e3:7.3f} ms")
 
