@@ -60,64 +60,67 @@ def _decode(
     """Points of all packets plus, per point, its flat block index and corrected azimuth (degrees, [0, 360))."""
     n_packets, n_blocks, n_channels = parsed.shape[0], fmt.n_blocks, fmt.n_channels
     blocks = parsed["blocks"]
-    units = blocks["units"]  # (P, B, C)
-    raw = units["distance"]
+    units = blocks["units"]  # (P, B, C), strided view into the packets
+    raw = np.ascontiguousarray(units["distance"])
     mode = parsed["return_mode"]
     dual = mode == RETURN_DUAL
     n_returns = np.where(dual, 2, 1)
 
-    # Return labels per block; in dual mode blocks come in (last, strongest) pairs with equal azimuth.
-    single_type = np.where(mode == RETURN_LAST, ReturnType.LAST, ReturnType.STRONGEST).astype(np.uint8)
-    block_type = np.repeat(single_type[:, None], n_blocks, axis=1)
-    odd = (np.arange(n_blocks) % 2 == 1)[None, :]
-    block_type = np.where(dual[:, None] & ~odd, np.uint8(ReturnType.LAST), block_type)
-    block_type = np.where(dual[:, None] & odd, np.uint8(ReturnType.STRONGEST), block_type)
-    point_type = np.broadcast_to(block_type[:, :, None], raw.shape).copy()
-
+    # Candidate points: non-zero echoes; in dual mode blocks come in (last, strongest) pairs with one azimuth,
+    # and a second echo equal to the first is the same point (labelled IDENTICAL, kept once).
     keep = raw > 0
+    identical = np.zeros(raw.shape, dtype=bool)
     if dual.any():
         pairs = raw.reshape(n_packets, n_blocks // 2, 2, n_channels)
         same = (pairs[:, :, 0, :] == pairs[:, :, 1, :]) & dual[:, None, None]
-        pair_type = point_type.reshape(pairs.shape)
-        pair_type[:, :, 0, :][same] = ReturnType.IDENTICAL
+        identical.reshape(pairs.shape)[:, :, 0, :] = same
         if dedupe_dual:
-            pair_keep = keep.reshape(pairs.shape)
-            pair_keep[:, :, 1, :] &= ~same
-
-    distance = raw.astype(np.float32) * distance_unit_m(fmt, parsed).astype(np.float32)[:, None, None]
-    keep &= (distance >= min_range) & (distance <= max_range)
-
-    azimuth = (
-        blocks["azimuth"].astype(np.float32)[:, :, None] * np.float32(0.01)
-        + calibration.azimuth_offset_deg.astype(np.float32)[None, None, :]
-    )
-    azimuth = np.mod(azimuth, np.float32(360.0))
-    lo, hi = fov
-    if not (lo <= 0.0 and hi >= 360.0):
-        rel = np.mod(azimuth - np.float32(lo), np.float32(360.0))
-        keep &= rel <= np.float32(np.mod(hi - lo, 360.0) if hi - lo < 360.0 else 360.0)
-
+            keep.reshape(pairs.shape)[:, :, 1, :] &= ~same
     index = np.flatnonzero(keep.ravel())
+
     channel = (index % n_channels).astype(np.intp)
     flat_block = index // n_channels
     packet = flat_block // n_blocks
     block = flat_block % n_blocks
 
-    az = np.deg2rad(azimuth.ravel()[index])
+    distance = raw.ravel()[index].astype(np.float32) * distance_unit_m(fmt, parsed).astype(np.float32)[packet]
+    block_azimuth = blocks["azimuth"].ravel()
+    azimuth = (block_azimuth[flat_block].astype(np.float32) * np.float32(0.01)
+               + calibration.azimuth_offset_deg.astype(np.float32)[channel])
+    azimuth += np.where(azimuth < 0, np.float32(360.0), np.float32(0.0))
+    azimuth -= np.where(azimuth >= 360.0, np.float32(360.0), np.float32(0.0))
+    ok = (distance >= min_range) & (distance <= max_range)
+    lo, hi = fov
+    if not (lo <= 0.0 and hi >= 360.0):
+        rel = np.mod(azimuth - np.float32(lo), np.float32(360.0))
+        ok &= rel <= np.float32(np.mod(hi - lo, 360.0) if hi - lo < 360.0 else 360.0)
+    if not ok.all():
+        index, channel, flat_block, packet, block = index[ok], channel[ok], flat_block[ok], packet[ok], block[ok]
+        distance, azimuth = distance[ok], azimuth[ok]
+
+    # Return label per point.
+    single_type = np.where(mode == RETURN_LAST, ReturnType.LAST, ReturnType.STRONGEST).astype(np.uint8)
+    point_type = single_type[packet]
+    in_dual = dual[packet]
+    if in_dual.any():
+        dual_type = np.where(block % 2 == 1, np.uint8(ReturnType.STRONGEST), np.uint8(ReturnType.LAST))
+        dual_type[identical.ravel()[index]] = ReturnType.IDENTICAL
+        point_type = np.where(in_dual, dual_type, point_type)
+
+    az = np.deg2rad(azimuth)
     elevation = np.deg2rad(calibration.elevation_deg.astype(np.float32))
     cos_el, sin_el = np.cos(elevation), np.sin(elevation)
-    d = distance.ravel()[index]
-    xy = d * cos_el[channel]
     points = np.empty(index.size, dtype=POINT_DTYPE)
+    xy = distance * cos_el[channel]
     points["x"] = xy * np.sin(az)
     points["y"] = xy * np.cos(az)
-    points["z"] = d * sin_el[channel]
+    points["z"] = distance * sin_el[channel]
     points["intensity"] = units["reflectivity"].ravel()[index]
     points["ring"] = channel
     offset_ns = fmt.block_offset_ns(n_returns)[packet, block] + fmt.firing_offset_ns[channel]
     points["timestamp"] = packet_time_s(fmt, parsed)[packet] + offset_ns * 1e-9
-    points["return_type"] = point_type.ravel()[index]
-    return points, flat_block, azimuth.ravel()[index]
+    points["return_type"] = point_type
+    return points, flat_block, azimuth
 
 
 def decode_packets(
