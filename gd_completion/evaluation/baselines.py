@@ -1,0 +1,89 @@
+"""Completion baselines on normalised partial clouds: raw input, mirror symmetry, generation-only, GGD-Net."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from gd_completion.model.network import GGDNet
+from gd_completion.pipeline import resample_indices
+
+# Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s).
+BASELINE_NAMES: tuple[str, ...] = ("input", "mirror", "generation", "ggd")
+BASELINE_TITLES: dict[str, str] = {"input": "raw input", "mirror": "mirror symmetry",
+                                   "generation": "generation only", "ggd": "GGD-Net"}
+
+
+def raw_input(partial: np.ndarray) -> np.ndarray:
+    """The partial cloud itself (float32 copy)."""
+    return np.array(partial, dtype=np.float32)
+
+
+def mirror_symmetry(partial: np.ndarray) -> np.ndarray:
+    """Input plus its mirror image about the longitudinal vertical plane (y -> -y in the box frame).
+
+    Works on (N, 3) or (B, N, 3); the output has twice the points, input first.
+    """
+    partial = np.asarray(partial, dtype=np.float32)
+    mirrored = partial * np.array([1.0, -1.0, 1.0], dtype=np.float32)
+    return np.concatenate([partial, mirrored], axis=-2)
+
+
+def _as_batch(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray]) -> tuple[torch.Tensor, bool]:
+    if isinstance(partial, np.ndarray) and partial.ndim == 3 and partial.shape[1] == model.config.num_input:
+        return torch.from_numpy(partial.astype(np.float32)), False
+    single = isinstance(partial, np.ndarray) and partial.ndim == 2
+    clouds = [partial] if single else list(partial)
+    return torch.from_numpy(_resampled(clouds, model.config.num_input)), single
+
+
+def _resampled(clouds: Sequence[np.ndarray], n: int) -> np.ndarray:
+    """(B, n, 3) float32: each cloud brought to `n` points the way the pipeline does (FPS down, cycle up)."""
+    clouds = [np.asarray(c, dtype=np.float32).reshape(-1, 3) for c in clouds]
+    empty = [i for i, c in enumerate(clouds) if len(c) == 0]
+    if empty:
+        raise ValueError(f"cannot complete empty clouds (indices {empty})")
+    picks = resample_indices([len(c) for c in clouds], clouds, n)
+    return np.stack([c[idx] for c, idx in zip(clouds, picks)]).astype(np.float32)
+
+
+@torch.inference_mode()
+def generation_only(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
+    """GGD-Net generation-only branch `GGDNet.generate`: (N_o, 3) for one cloud, (B, N_o, 3) for several."""
+    batch, single = _as_batch(model, partial)
+    out = model.eval().generate(batch).float().numpy()
+    return out[0] if single else out
+
+
+@torch.inference_mode()
+def ggd_net(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
+    """Full GGD-Net `forward(...).completion`: (N_o, 3) for one cloud, (B, N_o, 3) for several."""
+    batch, single = _as_batch(model, partial)
+    out = model.eval()(batch).completion.float().numpy()
+    return out[0] if single else out
+
+
+@torch.inference_mode()
+def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
+                    max_batch: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """(generation-only P_g, GGD-Net P_o), each (B, N_o, 3), from one batched forward per chunk.
+
+    Clouds of any size are resampled to `num_input` as in the pipeline. In eval mode P_g of the
+    forward pass equals `generate` (FPS is deterministic), so one pass serves both baselines.
+    """
+    model = model.eval()
+    if isinstance(partials, np.ndarray) and partials.ndim == 3 and partials.shape[1] == model.config.num_input:
+        batch = partials.astype(np.float32, copy=False)
+    else:
+        batch = _resampled(list(partials), model.config.num_input) if len(partials) else np.zeros(
+            (0, model.config.num_input, 3), np.float32)
+    generated, completion = [], []
+    for start in range(0, len(batch), max_batch):
+        out = model(torch.from_numpy(np.ascontiguousarray(batch[start:start + max_batch])))
+        generated.append(out.generated.float().numpy())
+        completion.append(out.completion.float().numpy())
+    if not generated:
+        empty = np.zeros((0, model.config.num_output, 3), np.float32)
+        return empty, empty.copy()
+    return np.concatenate(generated), np.concatenate(completion)

@@ -1,0 +1,76 @@
+"""Completion metrics (normalised box frame): Chamfer-L2 and its two directions, Fidelity, Coverage error."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+# Report units: Chamfer (and its directions) x1e4 at 2048 points, Fidelity and Coverage error x1e3.
+CD_SCALE = 1e4
+FIDELITY_SCALE = 1e3
+COVERAGE_SCALE = 1e3
+# Largest number of (query, target) distance entries held at once.
+CHUNK_ENTRIES = 1 << 22
+
+
+def _batched(points: np.ndarray | Tensor) -> tuple[Tensor, bool]:
+    t = torch.as_tensor(np.asarray(points, dtype=np.float32) if not isinstance(points, Tensor) else points)
+    t = t.float()
+    if t.dim() == 2:
+        return t.unsqueeze(0), True
+    if t.dim() != 3 or t.shape[-1] != 3:
+        raise ValueError(f"point clouds must be (N, 3) or (B, N, 3), got {tuple(t.shape)}")
+    return t, False
+
+
+def nearest_sq_distance(query: np.ndarray | Tensor, target: np.ndarray | Tensor,
+                        chunk_entries: int = CHUNK_ENTRIES) -> Tensor:
+    """Squared distance from each query point to its nearest target point: (B, Nq) (or (Nq,) unbatched).
+
+    Exact differences (no |a|^2+|b|^2-2ab cancellation), computed in query chunks of at most
+    `chunk_entries` distance entries. An empty target gives +inf.
+    """
+    q, single = _batched(query)
+    t, _ = _batched(target)
+    if q.shape[0] != t.shape[0]:
+        raise ValueError(f"batch sizes differ: {tuple(q.shape)} vs {tuple(t.shape)}")
+    b, nq, nt = q.shape[0], q.shape[1], t.shape[1]
+    if nt == 0:
+        out = torch.full((b, nq), float("inf"))
+    else:
+        step = max(1, chunk_entries // max(1, b * nt))
+        parts = []
+        with torch.no_grad():
+            for start in range(0, nq, step):
+                diff = q[:, start:start + step, None, :] - t[:, None, :, :]
+                parts.append(diff.pow(2).sum(-1).amin(-1))
+        out = torch.cat(parts, 1) if parts else torch.zeros(b, 0)
+    return out[0] if single else out
+
+
+def _mean(d: Tensor) -> Tensor:
+    return d.mean(-1) if d.shape[-1] else torch.full(d.shape[:-1], float("nan"))
+
+
+def chamfer_directional(output: np.ndarray | Tensor, gt: np.ndarray | Tensor) -> tuple[Tensor, Tensor]:
+    """(CD(D,G), CD(G,D)): mean squared distance output->GT (fidelity-like) and GT->output (completeness).
+
+    Unscaled; (B,) for batched input, 0-d for single clouds.
+    """
+    return _mean(nearest_sq_distance(output, gt)), _mean(nearest_sq_distance(gt, output))
+
+
+def chamfer(output: np.ndarray | Tensor, gt: np.ndarray | Tensor) -> Tensor:
+    """Chamfer-L2: squared distances, each direction averaged over its points, the two summed (unscaled)."""
+    dg, gd = chamfer_directional(output, gt)
+    return dg + gd
+
+
+def fidelity(partial: np.ndarray | Tensor, output: np.ndarray | Tensor) -> Tensor:
+    """Fidelity: mean squared distance from each input point to its nearest output point (unscaled)."""
+    return _mean(nearest_sq_distance(partial, output))
+
+
+def coverage_error(reference: np.ndarray | Tensor, output: np.ndarray | Tensor) -> Tensor:
+    """Coverage error: mean squared distance from each reference point to its nearest output point (unscaled)."""
+    return _mean(nearest_sq_distance(reference, output))
