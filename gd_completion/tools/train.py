@@ -1,0 +1,104 @@
+"""`gd-completion train`: generate (or load cached) synthetic vehicle scans and train GGD-Net."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import time
+from pathlib import Path
+
+import torch
+
+from gd_completion.model.config import GGDConfig
+from gd_completion.synth.dataset import build_dataset, load_dataset, save_dataset
+from gd_completion.train import TrainSettings, train
+
+# Seeds of the validation set are offset so that they never meet the training seeds.
+VALIDATION_SEED_OFFSET = 1_000_003
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("train", help="train GGD-Net on generated vehicle scans", description=__doc__)
+    parser.add_argument("--output", type=Path, default=Path("runs/ggd"), help="run folder (last.pt, best.pt, log)")
+    parser.add_argument("--samples", type=int, default=4000, help="training samples to generate (default 4000)")
+    parser.add_argument("--val-samples", type=int, default=200, help="validation samples (default 200)")
+    parser.add_argument("--seed", type=int, default=0, help="data and initialisation seed")
+    parser.add_argument("--meshes", type=Path, default=None,
+                        help="extra folder of vehicle meshes (.ply/.obj/.off) mixed with procedural shapes")
+    parser.add_argument("--cache", type=Path, default=None,
+                        help="folder for the generated data sets (.npz); reused when present (default: --output)")
+    parser.add_argument("--workers", type=int, default=2, help="processes generating data (default 2)")
+    parser.add_argument("--epochs", type=int, default=70)
+    parser.add_argument("--generation-epochs", type=int, default=40, help="epochs with lambda=0 (paper: 40)")
+    parser.add_argument("--lam", type=float, default=3.0, help="lambda after the generation epochs (paper: 3)")
+    parser.add_argument("--batch-size", type=int, default=32)
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--time-budget", type=float, default=None, help="stop after this many seconds")
+    parser.add_argument("--resume", action="store_true", help="continue from OUTPUT/last.pt")
+    parser.add_argument("--num-control", type=int, default=None, help="N_c (default: GGDConfig's 256)")
+    parser.add_argument("--config", type=Path, default=None, help="JSON file with GGDConfig fields")
+    parser.set_defaults(func=run)
+
+
+def cached_dataset(path: Path, n_samples: int, seed: int, meshes: Path | None, workers: int) -> dict:
+    """Load the data set at `path` if it matches (count, seed), else generate and save it."""
+    if path.is_file():
+        data = load_dataset(path)
+        meta = data.get("meta", {})
+        if len(data["partial"]) == n_samples and int(meta.get("seed", -1)) == seed:
+            logging.info("loaded %d cached samples from %s", n_samples, path)
+            return data
+    started = time.perf_counter()
+    data = build_dataset(n_samples, seed, meshes_dir=meshes, workers=workers)
+    elapsed = time.perf_counter() - started
+    logging.info("generated %d samples in %.0f s (%.1f samples/s)", n_samples, elapsed, n_samples / elapsed)
+    save_dataset(path, data)
+    return data
+
+
+def load_config(args: argparse.Namespace) -> GGDConfig:
+    """GGDConfig from --config JSON and --num-control (the tree decoder arity follows N_c)."""
+    fields = json.loads(args.config.read_text()) if args.config else {}
+    if args.num_control is not None:
+        fields["num_control"] = args.num_control
+        fields.setdefault("tree_arity", tree_arity_for(GGDConfig().num_output - args.num_control))
+    return GGDConfig.from_dict({**GGDConfig().to_dict(), **fields})
+
+
+def tree_arity_for(n_points: int) -> list[int]:
+    """A TopNet arity list (root split into 8, then small factors) whose product is `n_points`."""
+    arity, rest = [8], n_points
+    if rest % 8:
+        raise ValueError(f"num_output - num_control = {n_points} must be a multiple of 8")
+    rest //= 8
+    for factor in (8, 4, 2, 7, 3, 5):
+        while rest % factor == 0 and rest > 1:
+            arity.append(factor)
+            rest //= factor
+    if rest > 1:
+        arity.append(rest)
+    return arity
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    args.output.mkdir(parents=True, exist_ok=True)
+    cache = args.cache or args.output
+    train_data = cached_dataset(cache / f"train_{args.samples}_s{args.seed}.npz", args.samples, args.seed,
+                                args.meshes, args.workers)
+    val_seed = args.seed + VALIDATION_SEED_OFFSET
+    val_data = cached_dataset(cache / f"val_{args.val_samples}_s{val_seed}.npz", args.val_samples, val_seed,
+                              args.meshes, args.workers)
+    config = load_config(args)
+    settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
+                             batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
+                             time_budget_s=args.time_budget)
+    (args.output / "settings.json").write_text(json.dumps(
+        {"config": config.to_dict(), "settings": dataclasses.asdict(settings), "samples": args.samples,
+         "val_samples": args.val_samples, "meshes": str(args.meshes) if args.meshes else None}, indent=2))
+    result = train(config, (train_data["partial"], train_data["complete"]),
+                   (val_data["partial"], val_data["complete"]), args.output, settings, resume=args.resume)
+    print(f"train: {result.epochs_done} epochs, best checkpoint {result.best_path}, last {result.last_path}")
+    return 0
