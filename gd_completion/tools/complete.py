@@ -129,8 +129,11 @@ class _Progress:
 def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = None,
                  boxes_topic: str | None = None, output_topic: str | None = None, model: str | None = None,
                  storage: str = "mcap", completer: Any = None, overwrite: bool = False,
-                 progress: bool = True) -> CompletionSummary:
-    """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message."""
+                 progress: bool = True, **completer_options: Any) -> CompletionSummary:
+    """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message.
+
+    `completer_options` go to `VehicleCompleter.from_checkpoint` (device, num_threads, min_points, labels, ...).
+    """
     from gd_completion.pipeline import completion_to_structured
 
     summary = CompletionSummary()
@@ -145,7 +148,7 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
         if completer is None:
             from gd_completion.pipeline import VehicleCompleter
 
-            completer = VehicleCompleter.from_checkpoint(model or None)
+            completer = VehicleCompleter.from_checkpoint(model or None, **completer_options)
         total = sum(c.msgcount for c in reader.connections if c.topic == cloud_topic)
         bar = _Progress(total, progress)
         with bagio.atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer:
@@ -182,9 +185,16 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
 
 
 def _run(args: argparse.Namespace) -> int:
+    options: dict[str, Any] = {"device": args.device}
+    if args.threads:
+        options["num_threads"] = args.threads
+    if args.min_points is not None:
+        options["min_points"] = args.min_points
+    if args.labels:
+        options["labels"] = [label.strip().lower() for label in args.labels.split(",") if label.strip()]
     summary = complete_bag(args.input, args.output, cloud_topic=args.cloud_topic, boxes_topic=args.boxes_topic,
                            output_topic=args.output_topic, model=args.model, storage=args.storage,
-                           overwrite=args.overwrite, progress=not args.quiet)
+                           overwrite=args.overwrite, progress=not args.quiet, **options)
     print(f"wrote {args.output}: {summary.text()}")
     return 0
 
@@ -202,6 +212,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--output-topic", default=None, help="completed cloud topic (default: <namespace>/completed)")
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
     parser.add_argument("--storage", choices=bagio.STORAGES, default="mcap", help="output storage (default mcap)")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
+    parser.add_argument("--min-points", type=int, default=None,
+                        help="skip vehicles with fewer measured points (default: the pipeline's, 20)")
+    parser.add_argument("--labels", default=None, help="comma-separated labels to complete (default car,van,truck)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
     parser.set_defaults(func=_run)

@@ -33,8 +33,13 @@ def _qos(conn: Any) -> Any:
 
 
 def play(path: str | Path, *, rate: float = 1.0, loop: bool = False, start_offset: float = 0.0,
-         topics: list[str] | None = None, delay: float = 0.5, log=print) -> dict[str, int]:
-    """Publish the bag; returns messages published per topic. Topics whose type rclpy lacks are skipped."""
+         topics: list[str] | None = None, delay: float = 0.5, wait_for_subscribers: float = 0.0,
+         log=print) -> dict[str, int]:
+    """Publish the bag; returns messages published per topic. Topics whose type rclpy lacks are skipped.
+
+    Waits `delay` seconds after creating the publishers, and up to `wait_for_subscribers` seconds until every
+    publisher has a matched subscription.
+    """
     if rate <= 0:
         raise BagError(f"--rate must be positive, got {rate}")
     import rclpy
@@ -61,6 +66,9 @@ def play(path: str | Path, *, rate: float = 1.0, loop: bool = False, start_offse
                 raise BagError(f"{path}: none of the selected topics has a type rclpy can publish")
             conns = [c for c in wanted if c.id in publishers]
             time.sleep(max(0.0, delay))  # let subscribers discover the publishers
+            deadline = time.monotonic() + wait_for_subscribers
+            while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in publishers.values()):
+                time.sleep(0.05)
             first = reader.start_time + int(start_offset * 1e9)
             while True:
                 wall0 = time.monotonic()
@@ -86,7 +94,7 @@ def play(path: str | Path, *, rate: float = 1.0, loop: bool = False, start_offse
 
 def _run(args: argparse.Namespace) -> int:
     counts = play(args.bag, rate=args.rate, loop=args.loop, start_offset=args.start_offset,
-                  topics=args.topics or None, delay=args.delay)
+                  topics=args.topics or None, delay=args.delay, wait_for_subscribers=args.wait_for_subscribers)
     print("published: " + ", ".join(f"{t} {n}" for t, n in counts.items()))
     return 0
 
@@ -102,4 +110,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--topics", nargs="+", default=None, help="only these topics")
     parser.add_argument("--delay", type=float, default=0.5,
                         help="seconds between creating publishers and the first message (discovery)")
+    parser.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SECONDS",
+                        help="wait up to this long until every topic has a subscriber (default 0)")
     parser.set_defaults(func=_run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m gd_completion.tools.play BAG ...` (the same as `gd-completion play`)."""
+    parser = argparse.ArgumentParser(prog="gd-completion")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["play", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return _run(args)
+    except BagError as error:
+        print(f"gd-completion play: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

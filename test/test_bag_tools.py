@@ -1,0 +1,230 @@
+"""`complete`, `play` and `render` on a converted KITTI bag; bad bags fail cleanly with no output."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gd_completion import bagio
+from gd_completion.cli import main
+from gd_completion.errors import GDCompletionError
+from gd_completion.geometry import Box3D
+from gd_completion.pointcloud2 import read_points, write_points
+from gd_completion.tools.complete import complete_bag
+
+KITTI = "kitti-object-sample/training"
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """The shipped weights, else a randomly initialised checkpoint (the bag plumbing is what is tested)."""
+    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, save_checkpoint
+
+    if DEFAULT_WEIGHTS.is_file():
+        return str(DEFAULT_WEIGHTS)
+    import torch
+
+    from gd_completion.model.config import GGDConfig
+    from gd_completion.model.network import GGDNet
+
+    torch.manual_seed(0)
+    return str(save_checkpoint(tmp_path_factory.mktemp("model") / "random.pt", GGDNet(GGDConfig())))
+
+
+@pytest.fixture(scope="module")
+def kitti_bag(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("bags") / "kitti"
+    assert main(["convert", "kitti", str(shared_data / KITTI), str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def completed_bag(kitti_bag: Path, model_path: str) -> Path:
+    out = kitti_bag.parent / "kitti_completed"
+    assert main(["complete", str(kitti_bag), str(out), "--model", model_path, "--threads", "1", "--quiet"]) == 0
+    return out
+
+
+def _raw(path: Path) -> tuple[dict[str, tuple], dict[str, list[tuple[int, bytes]]]]:
+    with bagio.open_bag(path) as reader:
+        conns = {c.topic: (c.msgtype, c.msgdef.data, c.digest, c.ext.serialization_format,
+                           list(c.ext.offered_qos_profiles)) for c in reader.connections}
+        messages: dict[str, list] = {}
+        for conn, stamp, raw in bagio.iter_raw(reader, reader.connections):
+            messages.setdefault(conn.topic, []).append((stamp, bytes(raw)))
+    return conns, messages
+
+
+def test_complete_keeps_every_input_message(kitti_bag: Path, completed_bag: Path) -> None:
+    in_conns, in_msgs = _raw(kitti_bag)
+    out_conns, out_msgs = _raw(completed_bag)
+    for topic, meta in in_conns.items():
+        assert out_conns[topic] == meta  # type, definition, hash, QoS
+        assert out_msgs[topic] == in_msgs[topic]  # count, order, stamps and bytes
+    assert set(out_conns) - set(in_conns) == {"/kitti/completed"}
+    completed = out_msgs["/kitti/completed"]
+    assert [s for s, _ in completed] == [s for s, _ in in_msgs["/kitti/points"]]
+    n_generated = 0
+    for (stamp, raw), (_, cloud_raw) in zip(completed, in_msgs["/kitti/points"]):
+        msg = bagio.deserialize(raw, bagio.POINTCLOUD2)
+        cloud = bagio.deserialize(cloud_raw, bagio.POINTCLOUD2)
+        assert msg.header.frame_id == cloud.header.frame_id and msg.header.stamp == cloud.header.stamp
+        pts = read_points(msg)
+        assert pts.dtype.names == ("x", "y", "z", "instance_id", "label", "generated")
+        n_generated += int((pts["generated"] == 1).sum())
+    assert n_generated > 0
+
+
+def test_complete_sqlite3_output(kitti_bag: Path, model_path: str, tmp_path: Path) -> None:
+    out = tmp_path / "done"
+    summary = complete_bag(kitti_bag, out, model=model_path, storage="sqlite3", progress=False,
+                           output_topic="/vehicles")
+    assert (out / "done.db3").is_file() and summary.frames == 6 and summary.vehicles_completed > 0
+    assert "6 frames" in summary.text()
+    assert len(_raw(out)[1]["/vehicles"]) == 6
+
+
+def test_failure_mid_write_leaves_no_output(kitti_bag: Path, tmp_path: Path) -> None:
+    class Stub:
+        def __init__(self) -> None:
+            self.n = 0
+
+        def complete_frame(self, points, boxes):
+            self.n += 1
+            if self.n == 3:
+                raise GDCompletionError("model failed on frame 3")
+            from gd_completion.pipeline import FrameCompletion, FrameStats
+
+            return FrameCompletion(np.zeros((0, 3), np.float32), np.zeros(0, np.int32), np.zeros(0, np.uint8),
+                                   np.zeros(0, np.uint8), FrameStats())
+
+    out = tmp_path / "half"
+    with pytest.raises(GDCompletionError, match="frame 3"):
+        complete_bag(kitti_bag, out, completer=Stub(), progress=False)
+    assert list(tmp_path.iterdir()) == []
+
+
+def _write_bag(path: Path, with_boxes: bool) -> None:
+    cloud = np.zeros(10, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    with bagio.atomic_bag_writer(path) as writer:
+        pts = bagio.add_connection(writer, "/points", bagio.POINTCLOUD2)
+        other = bagio.add_connection(writer, "/other", "pandar_msgs/msg/PandarScan")
+        boxes = bagio.add_connection(writer, "/boxes", bagio.MARKER_ARRAY) if with_boxes else None
+        for k in range(2):
+            writer.write(pts, k, bagio.serialize(bagio.pointcloud2_msg(write_points(cloud), "lidar", k),
+                                                 bagio.POINTCLOUD2))
+            writer.write(other, k, bagio.serialize(bagio.typestore().types["pandar_msgs/msg/PandarScan"](
+                header=bagio.header("lidar", k), packets=[]), "pandar_msgs/msg/PandarScan"))
+            if boxes is not None:
+                writer.write(boxes, k, bagio.serialize(bagio.marker_array_msg(
+                    [Box3D((1, 2, 0), (4, 2, 1.5), 0.1, "car", 3)], "lidar", k), bagio.MARKER_ARRAY))
+
+
+@pytest.mark.parametrize("case", ["truncated", "not_a_bag", "missing", "no_boxes", "unknown_boxes_type",
+                                  "cloud_topic_wrong_type", "output_exists"])
+def test_bad_bags(case: str, kitti_bag: Path, model_path: str, tmp_path: Path,
+                  capsys: pytest.CaptureFixture) -> None:
+    src = tmp_path / "in"
+    extra: list[str] = []
+    if case == "truncated":
+        src.mkdir()
+        for f in kitti_bag.iterdir():
+            data = f.read_bytes()
+            (src / f.name).write_bytes(data[: len(data) // 2] if f.suffix == ".mcap" else data)
+    elif case == "not_a_bag":
+        src.mkdir()
+        (src / "metadata.yaml").write_text("this: is not rosbag2 metadata\n")
+    elif case == "missing":
+        pass
+    elif case == "no_boxes":
+        _write_bag(src, with_boxes=False)
+    elif case == "unknown_boxes_type":
+        _write_bag(src, with_boxes=True)
+        extra = ["--boxes-topic", "/other"]
+    elif case == "cloud_topic_wrong_type":
+        _write_bag(src, with_boxes=True)
+        extra = ["--cloud-topic", "/boxes"]
+    out = tmp_path / "out"
+    if case == "output_exists":
+        _write_bag(src, with_boxes=True)
+        out.mkdir()
+    before = sorted(p.name for p in tmp_path.iterdir())
+    code = main(["complete", str(src), str(out), "--model", model_path, "--quiet", *extra])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "error" in err and (str(src) in err or str(out) in err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no output, no leftovers
+    if case != "output_exists":
+        assert not out.exists()
+
+
+def test_marker_boxes_and_unknown_types_are_copied(model_path: str, tmp_path: Path) -> None:
+    src = tmp_path / "in"
+    _write_bag(src, with_boxes=True)
+    summary = complete_bag(src, tmp_path / "out", model=model_path, progress=False)
+    assert summary.frames == 2 and summary.skipped["too_few_points"] == 2
+    assert _raw(tmp_path / "out")[1]["/other"] == _raw(src)[1]["/other"]
+
+
+def test_render_completed_bag(completed_bag: Path, tmp_path: Path) -> None:
+    assert main(["render", str(completed_bag), str(tmp_path / "frame.png"), "--frame", "1",
+                 "--vehicles", str(tmp_path / "vehicles.png")]) == 0
+    for name in ("frame.png", "vehicles.png"):
+        data = (tmp_path / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
+def test_play_feeds_live_subscriber(kitti_bag: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import MarkerArray
+
+    domain = str(40 + os.getpid() % 50)
+    env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    monkeypatch.setenv("ROS_DOMAIN_ID", domain)
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    _, recorded = _raw(kitti_bag)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("gd_completion_play_test", context=context)
+        got: dict[str, list[bytes]] = {"/kitti/points": [], "/kitti/markers": []}
+        qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        node.create_subscription(PointCloud2, "/kitti/points", lambda m: got["/kitti/points"].append(m), qos, raw=True)
+        node.create_subscription(MarkerArray, "/kitti/markers", lambda m: got["/kitti/markers"].append(m), qos,
+                                 raw=True)
+        from rclpy.executors import SingleThreadedExecutor
+
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        player = subprocess.Popen(
+            [sys.executable, "-m", "gd_completion.tools.play", str(kitti_bag), "--rate", "2", "--delay", "0.5",
+             "--wait-for-subscribers", "30",
+             "--topics", "/kitti/points", "/kitti/markers", "/kitti/detections"],
+            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        started = time.monotonic()
+        while player.poll() is None and time.monotonic() - started < 45:
+            executor.spin_once(timeout_sec=0.05)
+        for _ in range(20):
+            executor.spin_once(timeout_sec=0.05)
+        out, err = player.communicate(timeout=10)
+        assert player.returncode == 0, err
+        assert "/kitti/points 6" in out
+        for topic, messages in got.items():
+            assert len(messages) == len(recorded[topic]), topic
+            for live, (_, raw) in zip(messages, recorded[topic]):
+                live = bytes(live)  # DDS may pad the payload with zeros to a multiple of 4 bytes
+                assert live[:len(raw)] == raw and len(live) - len(raw) < 4 and not any(live[len(raw):]), topic
+        if "vision_msgs" not in out:
+            assert "skipping /kitti/detections" in err
+        executor.shutdown()
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
