@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# Build the vision_msgs Python bindings from gd_completion/msg/vision_msgs/*.msg into <build_dir>/install (default build/interfaces).
+# Build vision_msgs Python bindings from gd_completion/msg/vision_msgs/*.msg into <build_dir>/install
+# (default: build/interfaces in the repository).
 #
-# Uses only the virtualenv (.venv, or $GD_VENV): the ROS 2 Jazzy PyPI wheels put their CMake configs under
-# <venv>/share and their libraries under <venv>/lib, so the venv is the ament prefix. The wheels' exported
-# *__rosidl_generator_pyExport.cmake files hard-code /opt/python/cp311-cp311 include dirs; the generated
-# CMakeLists.txt rewrites those paths on the imported targets (the venv is never modified).
+# Uses only the virtualenv ($GD_VENV, else <repo>/.venv, else $VIRTUAL_ENV): the ROS 2 Jazzy PyPI wheels
+# put their CMake configs under <venv>/share and their libraries under <venv>/lib, so the venv is the ament
+# prefix. The wheels' exported *__rosidl_generator_pyExport.cmake files hard-code /opt/python/cp311-cp311
+# include dirs; the generated CMakeLists.txt rewrites those paths on the imported targets after find_package
+# (the venv is never modified, so this is idempotent by construction).
 # Idempotent: exits at once when <build_dir>/install matches the current .msg files, this script and the venv.
 set -euo pipefail
 
@@ -13,7 +15,10 @@ repo=$(cd "$(dirname "$self")/.." && pwd)
 build_dir=${1:-"$repo/build/interfaces"}
 mkdir -p "$build_dir"
 build_dir=$(cd "$build_dir" && pwd)
-venv=${GD_VENV:-"$repo/.venv"}
+if [ -n "${GD_VENV:-}" ]; then venv=$GD_VENV
+elif [ -x "$repo/.venv/bin/python" ] || [ -z "${VIRTUAL_ENV:-}" ]; then venv="$repo/.venv"
+else venv=$VIRTUAL_ENV
+fi
 python="$venv/bin/python"
 msg_dir="$repo/gd_completion/msg/vision_msgs"
 install="$build_dir/install"

@@ -42,8 +42,11 @@ def interfaces_build_dir() -> Path:
 def build_interfaces(build_dir: Path | None = None) -> Path:
     """Build (or find up to date) the vision_msgs bindings; returns the install prefix `<build_dir>/install`."""
     build_dir = Path(build_dir) if build_dir is not None else interfaces_build_dir()
+    env = dict(os.environ)
+    if "GD_VENV" not in env and sys.prefix != sys.base_prefix:
+        env["GD_VENV"] = sys.prefix  # the venv running the tests is the ROS prefix
     proc = subprocess.run(
-        ["bash", str(BUILD_SCRIPT), str(build_dir)], capture_output=True, text=True, timeout=900, check=False
+        ["bash", str(BUILD_SCRIPT), str(build_dir)], capture_output=True, text=True, timeout=900, check=False, env=env
     )
     if proc.returncode != 0:
         raise InterfaceBuildError(
@@ -112,12 +115,18 @@ def vision_msgs_definitions() -> dict[str, str]:
     return {f"vision_msgs/msg/{p.stem}": p.read_text() for p in sorted(VISION_MSGS_DIR.glob("*.msg"))}
 
 
-def test_domain_id() -> int:
+def ros_test_domain_id() -> int:
     """A ROS_DOMAIN_ID for this test process: `$GD_TEST_DOMAIN_ID`, else 120 + pid % 100 (within Fast DDS's 0..232)."""
     return int(os.environ.get("GD_TEST_DOMAIN_ID", 120 + os.getpid() % 100))
 
 
-test_domain_id.__test__ = False  # not a pytest test
+def vision_msgs_type_hash(name: str = "Detection3DArray") -> str:
+    """The RIHS01 type hash of `vision_msgs/msg/<name>` from the generated type description (builds on demand)."""
+    import json
+
+    desc = build_interfaces() / "share" / "vision_msgs" / "msg" / f"{name}.json"
+    hashes = json.loads(desc.read_text())["type_hashes"]
+    return next(h["hash_string"] for h in hashes if h["type_name"] == f"vision_msgs/msg/{name}")
 
 
 def make_detection_array(msgs=None, frame_id: str = "lidar", n: int = 2):
@@ -158,7 +167,7 @@ def roundtrip_detection_array(timeout: float = 10.0):
     from rclpy.qos import QoSDurabilityPolicy, QoSProfile, QoSReliabilityPolicy
 
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=test_domain_id())
+    rclpy.init(context=ctx, domain_id=ros_test_domain_id())
     try:
         qos = QoSProfile(depth=5, reliability=QoSReliabilityPolicy.RELIABLE, durability=QoSDurabilityPolicy.VOLATILE)
         talker = rclpy.create_node("gd_vision_msgs_talker", context=ctx)
