@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from gd_completion.geometry import Box3D, box_problem, crop_boxes, denormalize, finite_mask, normalize
-from gd_completion.model.checkpoint import load_model
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import GGDNet
 from gd_completion.model.ops import farthest_point_sample
 
@@ -116,7 +116,7 @@ class VehicleCompleter:
         """Load a checkpoint (the shipped weights when `path` is None or empty)."""
         if num_threads:
             torch.set_num_threads(int(num_threads))
-        model = load_model(path or None, device=device)
+        model = load_model(path or DEFAULT_WEIGHTS, device=device)
         return cls(model, device=device, **options)
 
     def prepare(self, points: np.ndarray, boxes: Sequence[Box3D], stats: FrameStats) -> list[PreparedVehicle]:
