@@ -16,6 +16,7 @@ from gd_completion.errors import GDCompletionError
 from gd_completion.geometry import Box3D
 from gd_completion.pointcloud2 import read_points, write_points
 from gd_completion.tools.complete import complete_bag
+from interfaces import ros_test_domain_id
 
 KITTI = "kitti-object-sample/training"
 REPO = Path(__file__).resolve().parents[1]
@@ -180,34 +181,32 @@ def test_render_completed_bag(completed_bag: Path, tmp_path: Path) -> None:
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
 
 
-def test_play_feeds_live_subscriber(kitti_bag: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    rclpy = pytest.importorskip("rclpy")
+def _play_and_listen(bag: Path, subscriptions: dict[str, type], monkeypatch: pytest.MonkeyPatch,
+                     env_extra: dict[str, str] | None = None) -> tuple[dict[str, list[bytes]], str, str]:
+    """Run `play` in a subprocess and collect the raw messages a live rclpy subscriber receives."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import PointCloud2
-    from visualization_msgs.msg import MarkerArray
 
-    domain = str(40 + os.getpid() % 50)
-    env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    domain = str(ros_test_domain_id())
     monkeypatch.setenv("ROS_DOMAIN_ID", domain)
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    _, recorded = _raw(kitti_bag)
+    env = {**os.environ, **(env_extra or {})}
     context = rclpy.Context()
     rclpy.init(context=context)
     try:
         node = rclpy.create_node("gd_completion_play_test", context=context)
-        got: dict[str, list[bytes]] = {"/kitti/points": [], "/kitti/markers": []}
+        got: dict[str, list[bytes]] = {topic: [] for topic in subscriptions}
         qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-        node.create_subscription(PointCloud2, "/kitti/points", lambda m: got["/kitti/points"].append(m), qos, raw=True)
-        node.create_subscription(MarkerArray, "/kitti/markers", lambda m: got["/kitti/markers"].append(m), qos,
-                                 raw=True)
-        from rclpy.executors import SingleThreadedExecutor
-
+        for topic, cls in subscriptions.items():
+            node.create_subscription(cls, topic, got[topic].append, qos, raw=True)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         player = subprocess.Popen(
-            [sys.executable, "-m", "gd_completion.tools.play", str(kitti_bag), "--rate", "2", "--delay", "0.5",
-             "--wait-for-subscribers", "30",
-             "--topics", "/kitti/points", "/kitti/markers", "/kitti/detections"],
+            [sys.executable, "-m", "gd_completion.tools.play", str(bag), "--rate", "2", "--delay", "0.5",
+             "--wait-for-subscribers", "30", "--topics", *subscriptions, *(["/kitti/detections"]
+                                                                        if "/kitti/detections" not in subscriptions
+                                                                        else [])],
             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         started = time.monotonic()
         while player.poll() is None and time.monotonic() - started < 45:
@@ -216,15 +215,60 @@ def test_play_feeds_live_subscriber(kitti_bag: Path, monkeypatch: pytest.MonkeyP
             executor.spin_once(timeout_sec=0.05)
         out, err = player.communicate(timeout=10)
         assert player.returncode == 0, err
-        assert "/kitti/points 6" in out
-        for topic, messages in got.items():
-            assert len(messages) == len(recorded[topic]), topic
-            for live, (_, raw) in zip(messages, recorded[topic]):
-                live = bytes(live)  # DDS may pad the payload with zeros to a multiple of 4 bytes
-                assert live[:len(raw)] == raw and len(live) - len(raw) < 4 and not any(live[len(raw):]), topic
-        if "vision_msgs" not in out:
-            assert "skipping /kitti/detections" in err
         executor.shutdown()
         node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
+    return got, out, err
+
+
+def _assert_same_messages(got: dict[str, list[bytes]], recorded: dict[str, list[tuple[int, bytes]]]) -> None:
+    for topic, messages in got.items():
+        assert len(messages) == len(recorded[topic]), topic
+        for live, (_, raw) in zip(messages, recorded[topic]):
+            live = bytes(live)  # DDS may pad the payload with zeros to a multiple of 4 bytes
+            assert live[:len(raw)] == raw and len(live) - len(raw) < 4 and not any(live[len(raw):]), topic
+
+
+def test_play_feeds_live_subscriber(kitti_bag: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("rclpy")
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import MarkerArray
+
+    got, out, err = _play_and_listen(kitti_bag, {"/kitti/points": PointCloud2, "/kitti/markers": MarkerArray},
+                                     monkeypatch)
+    assert "/kitti/points 6" in out and "/kitti/markers 6" in out
+    _assert_same_messages(got, _raw(kitti_bag)[1])
+    if "/kitti/detections" not in out:  # vision_msgs not importable in the player's environment
+        assert "skipping /kitti/detections" in err
+
+
+def test_play_detections_with_vision_msgs(kitti_bag: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("rclpy")
+    try:
+        from interfaces import import_vision_msgs, vision_msgs_env
+
+        msgs = import_vision_msgs()
+        env = vision_msgs_env()
+    except Exception as error:  # no compiler/CMake: the bindings cannot be built here
+        pytest.skip(f"vision_msgs Python bindings unavailable: {error}")
+    got, out, _ = _play_and_listen(kitti_bag, {"/kitti/detections": msgs.Detection3DArray}, monkeypatch, env)
+    assert "/kitti/detections 6" in out
+    _assert_same_messages(got, _raw(kitti_bag)[1])
+
+
+def test_foxglove_layout_names_the_written_topics() -> None:
+    import json
+
+    from gd_completion.datasets import pandaset
+    from gd_completion.tools.complete import default_output_topic
+    from gd_completion.tools.convert import KITTI_TOPICS
+
+    layout = json.loads((REPO / "foxglove" / "gd_completion_layout.json").read_text())
+    panels = {k: v for k, v in layout["configById"].items() if k.startswith("3D!")}
+    assert panels
+    topics = set().union(*(p["topics"] for p in panels.values()))
+    expected = {KITTI_TOPICS[0], KITTI_TOPICS[2], default_output_topic(KITTI_TOPICS[0]),
+                pandaset.SENSOR_TOPICS[0], pandaset.BOX_TOPICS[1], default_output_topic(pandaset.SENSOR_TOPICS[0])}
+    assert expected <= topics
+    assert layout["layout"]["first"]["first"] in layout["configById"]

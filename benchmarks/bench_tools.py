@@ -1,0 +1,67 @@
+"""Offline tool throughput: KITTI and PandaSet conversion (frames/s) and `complete` on a PandaSet bag.
+
+Usage: python benchmarks/bench_tools.py [--complete-frames N] [--model PATH] [--threads N]
+Reads ../shared/data (or $GD_SHARED_DATA); writes only to a temporary folder.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+from gd_completion.tools.complete import complete_bag  # noqa: E402
+from gd_completion.tools.convert import convert_kitti, convert_pandaset  # noqa: E402
+
+SHARED = Path(os.environ.get("GD_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+def _timed(fn):
+    start = time.perf_counter()
+    result = fn()
+    return result, time.perf_counter() - start
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pandaset-frames", type=int, default=20)
+    parser.add_argument("--complete-frames", type=int, default=3)
+    parser.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--min-points", type=int, default=None)
+    args = parser.parse_args()
+    if not SHARED.is_dir():
+        print(f"shared data folder {SHARED} not found (set GD_SHARED_DATA)", file=sys.stderr)
+        return 1
+    with tempfile.TemporaryDirectory(prefix="gd_bench_") as tmp:
+        tmp = Path(tmp)
+        counts, seconds = _timed(lambda: convert_kitti(SHARED / "kitti-object-sample", tmp / "kitti", quiet=True))
+        n = counts["/kitti/points"]
+        print(f"convert kitti:    {n} frames in {seconds:.2f} s = {n / seconds:.1f} frames/s (MCAP, ~120k points)")
+        counts, seconds = _timed(lambda: convert_pandaset(SHARED / "pandaset-002", tmp / "panda", quiet=True,
+                                                          limit=args.pandaset_frames))
+        n = counts["/pandar64/points"]
+        print(f"convert pandaset: {n} frames in {seconds:.2f} s = {n / seconds:.1f} frames/s "
+              f"(both sensors, ~170k points per frame)")
+        convert_pandaset(SHARED / "pandaset-002", tmp / "panda_small", quiet=True, limit=args.complete_frames,
+                         sensors=(0,))
+        options = {"num_threads": args.threads}
+        if args.min_points is not None:
+            options["min_points"] = args.min_points
+        summary = complete_bag(tmp / "panda_small", tmp / "panda_done", model=args.model, progress=False,
+                               **options)
+        rate = summary.frames / summary.seconds
+        per_frame = summary.vehicles_completed / max(summary.frames, 1)
+        print(f"complete pandaset: {summary.frames} frames in {summary.seconds:.1f} s = {rate:.2f} frames/s "
+              f"({per_frame:.0f} vehicles completed per frame, {args.threads} thread(s); target >= 5 frames/s "
+              f"{'met' if rate >= 5 else 'NOT met'})")
+        print(f"  {summary.text()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
