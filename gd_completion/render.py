@@ -62,9 +62,9 @@ def render_birdseye(path: str | Path, points: np.ndarray, boxes: Sequence[Box3D]
         ax.plot([box.center[0], front[0]], [box.center[1], front[1]], color="#dd6b20", lw=1.0)
     if len(comp):
         ax.scatter(comp[:, 0], comp[:, 1], s=0.6, c=COMPLETION_COLOUR, linewidths=0, rasterized=True)
-    if extent is None and boxes:
-        centres = np.array([b.center for b in boxes])
-        extent = float(np.abs(centres[:, :2]).max()) + 10.0
+    if extent is None and boxes:  # most boxes, at most 80 m (distant boxes would shrink everything)
+        reach = np.abs(np.array([b.center for b in boxes])[:, :2]).max(axis=1)
+        extent = float(np.clip(np.percentile(reach, 90) + 10.0, 20.0, 80.0))
     if extent is not None:
         ax.set_xlim(-extent, extent)
         ax.set_ylim(-extent, extent)
