@@ -14,6 +14,7 @@ SUBCOMMAND_MODULES = (
     "gd_completion.tools.complete",
     "gd_completion.tools.play",
     "gd_completion.tools.render",
+    "gd_completion.tools.evaluate",
 )
 
 

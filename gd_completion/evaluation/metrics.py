@@ -27,8 +27,9 @@ def nearest_sq_distance(query: np.ndarray | Tensor, target: np.ndarray | Tensor,
                         chunk_entries: int = CHUNK_ENTRIES) -> Tensor:
     """Squared distance from each query point to its nearest target point: (B, Nq) (or (Nq,) unbatched).
 
-    Exact differences (no |a|^2+|b|^2-2ab cancellation), computed in query chunks of at most
-    `chunk_entries` distance entries. An empty target gives +inf.
+    The nearest neighbour is found with |q|^2 + |t|^2 - 2 q.t on clouds centred on the target's mean
+    (query chunks of at most `chunk_entries` entries), then its distance is recomputed exactly from
+    the coordinate differences, so coincident points give exactly 0. An empty target gives +inf.
     """
     q, single = _batched(query)
     t, _ = _batched(target)
@@ -38,13 +39,20 @@ def nearest_sq_distance(query: np.ndarray | Tensor, target: np.ndarray | Tensor,
     if nt == 0:
         out = torch.full((b, nq), float("inf"))
     else:
-        step = max(1, chunk_entries // max(1, b * nt))
-        parts = []
         with torch.no_grad():
+            centre = t.mean(1, keepdim=True)
+            qc, tc = q - centre, t - centre
+            tt = (tc * tc).sum(-1).unsqueeze(1)  # (B, 1, Nt)
+            tc_t = tc.transpose(1, 2).contiguous()
+            step = max(1, chunk_entries // max(1, b * nt))
+            parts = []
             for start in range(0, nq, step):
-                diff = q[:, start:start + step, None, :] - t[:, None, :, :]
-                parts.append(diff.pow(2).sum(-1).amin(-1))
-        out = torch.cat(parts, 1) if parts else torch.zeros(b, 0)
+                qs = qc[:, start:start + step]
+                approx = torch.baddbmm(tt, qs, tc_t, alpha=-2.0)  # |t|^2 - 2 q.t; |q|^2 does not change argmin
+                nearest = approx.argmin(-1)  # (B, chunk)
+                picked = torch.gather(t, 1, nearest.unsqueeze(-1).expand(-1, -1, 3))
+                parts.append((q[:, start:start + step] - picked).pow(2).sum(-1))
+            out = torch.cat(parts, 1) if parts else torch.zeros(b, 0)
     return out[0] if single else out
 
 

@@ -1,0 +1,89 @@
+"""Evaluation report: markdown tables (stdout and report.md) and PNG renders of completed vehicles."""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from gd_completion.render import render_vehicles
+
+from .baselines import BASELINE_NAMES, BASELINE_TITLES
+from .pandaset_eval import SIZE_BINS, PandaSetResult
+from .synthetic import AblationRow, SyntheticResult
+
+
+def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    """A pipe table; floats with 3 decimals (NaN as '-')."""
+    def cell(v: object) -> str:
+        if isinstance(v, float):
+            return "-" if math.isnan(v) else f"{v:.3f}"
+        return str(v)
+
+    text = [[cell(v) for v in row] for row in rows]
+    widths = [max([len(h)] + [len(r[i]) for r in text]) for i, h in enumerate(headers)]
+    line = lambda cells: "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
+    sep = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
+    return "\n".join([line(headers), sep] + [line(r) for r in text])
+
+
+def synthetic_section(result: SyntheticResult) -> str:
+    """Table of CD x1e4, CD(D,G), CD(G,D) and Fidelity x1e3 per baseline on the held-out synthetic set."""
+    rows = [[BASELINE_TITLES[n], result.metrics[n]["cd"], result.metrics[n]["cd_dg"], result.metrics[n]["cd_gd"],
+             result.metrics[n]["fidelity"]] for n in BASELINE_NAMES]
+    return (f"## Synthetic held-out set\n\n{result.n_samples} pairs from {result.source}; "
+            f"normalised frame (vehicle length = 1), completions of 2048 points "
+            f"(raw input: 1024, mirror: 2048).\n\n"
+            + markdown_table(["method", "CD x1e4", "CD(D,G) x1e4", "CD(G,D) x1e4", "Fidelity x1e3"], rows)
+            + "\n\nCD(D,G): output -> ground truth (fidelity-like); CD(G,D): ground truth -> output (completeness).")
+
+
+def ablation_section(rows: Sequence[AblationRow], n_samples: int) -> str:
+    """Control-point ablation table (one row per checkpoint)."""
+    table = markdown_table(["N_c", "CD(D,G) x1e4", "CD(G,D) x1e4", "CD x1e4", "checkpoint"],
+                           [[r.num_control, r.cd_dg, r.cd_gd, r.cd, Path(r.checkpoint).name] for r in rows])
+    return f"## Control-point ablation (synthetic, {n_samples} pairs, GGD-Net completion)\n\n{table}"
+
+
+def _mean(values: list[float]) -> float:
+    return float(np.mean(values)) if values else float("nan")
+
+
+def pandaset_section(result: PandaSetResult) -> str:
+    """Coverage error and Fidelity (x1e3) per baseline, overall and by input size."""
+    bins = [name for name, *_ in SIZE_BINS]
+    groups = {"all": result.items, **{b: [i for i in result.items if i.size_bin == b] for b in bins}}
+    headers = ["method"] + [f"{g} (n={len(items)})" for g, items in groups.items()]
+    parts = [f"## PandaSet 002: single frame vs multi-frame aggregate\n\n"
+             f"{len(result.items)} vehicle-frames of {result.n_vehicles} stationary vehicles "
+             f"({result.n_candidates} stationary vehicle tracks in the sequence; Pandar64 points, >= 50 points "
+             f"in the box, at most {result.max_frames_per_vehicle or 'all'} frames per vehicle). Reference: the "
+             f"vehicle's points over all frames in its box frame, 4096 voxel-uniform samples. Normalised frame."]
+    for title, attr in (("Coverage error x1e3 (reference -> output)", "coverage"),
+                        ("Fidelity x1e3 (input -> output)", "fidelity")):
+        rows = [[BASELINE_TITLES[n]] + [_mean([getattr(i, attr)[n] for i in items]) for items in groups.values()]
+                for n in BASELINE_NAMES]
+        parts.append(f"### {title}\n\n" + markdown_table(headers, rows))
+    parts += [f"Note: {note}" for note in result.notes]
+    return "\n\n".join(parts)
+
+
+def write_report(out_dir: str | Path, sections: Sequence[str], title: str = "GGD-Net evaluation") -> Path:
+    """Write `# title` and the sections to out_dir/report.md (atomically); returns the path."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "report.md"
+    tmp = out_dir / ".report.md.partial"
+    tmp.write_text(f"# {title}\n\n" + "\n\n".join(sections) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def write_renders(out_dir: str | Path, name: str,
+                  items: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray]]) -> Path | None:
+    """PNG of input (blue), completion (red) and reference (grey) per vehicle; None without items."""
+    if not items:
+        return None
+    return render_vehicles(Path(out_dir) / name, list(items))

@@ -1,0 +1,99 @@
+"""`gd-completion evaluate`: baselines and GGD-Net on a held-out synthetic set and on PandaSet parked vehicles."""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+from gd_completion.evaluation import EvaluationError
+from gd_completion.evaluation.pandaset_eval import evaluate_pandaset
+from gd_completion.evaluation.report import (ablation_section, pandaset_section, synthetic_section, write_renders,
+                                             write_report)
+from gd_completion.evaluation.synthetic import EVAL_SEED, control_point_ablation, evaluate_synthetic, load_heldout
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+
+DEFAULT_PANDASET = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "pandaset-002"
+
+
+def run_evaluation(args: argparse.Namespace) -> int:
+    """Run the parts selected by `args`, print the tables and write report.md and PNGs to args.output."""
+    start = time.perf_counter()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    model_path = Path(args.model) if args.model else DEFAULT_WEIGHTS
+    model = load_model(model_path)
+    out = Path(args.output)
+    sections = [f"Model: `{model_path}` (N_c = {model.config.num_control}, N_o = {model.config.num_output}, "
+                f"{model.num_parameters():,} parameters)."]
+    timings: list[str] = []
+
+    def emit(text: str) -> None:
+        sections.append(text)
+        print(text + "\n", flush=True)
+
+    if args.synthetic_samples > 0:
+        t0 = time.perf_counter()
+        try:
+            partial, complete, source = load_heldout(args.synthetic_samples, seed=args.synthetic_seed,
+                                                     mesh_dir=args.heldout_meshes, path=args.synthetic_data)
+        except EvaluationError as error:
+            emit(f"## Synthetic held-out set\n\nSkipped: {error}.")
+        else:
+            built = time.perf_counter() - t0
+            result = evaluate_synthetic(model, partial, complete, seed=args.synthetic_seed, source=source,
+                                        max_batch=args.max_batch)
+            emit(synthetic_section(result))
+            write_renders(out, "synthetic_vehicles.png", result.examples)
+            if args.ablation_checkpoints:
+                emit(ablation_section(control_point_ablation(args.ablation_checkpoints, partial, complete,
+                                                             max_batch=args.max_batch), len(partial)))
+            timings.append(f"synthetic: data {built:.1f} s, evaluation {time.perf_counter() - t0 - built:.1f} s")
+    elif args.ablation_checkpoints:
+        emit("## Control-point ablation\n\nSkipped: it needs the synthetic set (--synthetic-samples > 0).")
+
+    pandaset = Path(args.pandaset) if args.pandaset else DEFAULT_PANDASET
+    if args.no_pandaset:
+        pass
+    elif not (pandaset / "lidar").is_dir():
+        emit(f"## PandaSet\n\nSkipped: {pandaset} not found (give --pandaset DIR).")
+    else:
+        t0 = time.perf_counter()
+        result = evaluate_pandaset(model, pandaset, max_frames_per_vehicle=args.max_frames_per_vehicle or None,
+                                   max_vehicles=args.max_vehicles, max_batch=args.max_batch)
+        emit(pandaset_section(result))
+        write_renders(out, "pandaset_vehicles.png", result.examples)
+        steps = ", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items())
+        timings.append(f"pandaset: {time.perf_counter() - t0:.1f} s ({steps})")
+
+    timings.append(f"total {time.perf_counter() - start:.1f} s, {torch.get_num_threads()} torch threads")
+    emit("## Run time\n\n" + "\n".join(f"- {t}" for t in timings))
+    path = write_report(out, sections)
+    print(f"wrote {path}")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `evaluate`."""
+    parser = subparsers.add_parser("evaluate", help="evaluate completion on synthetic and PandaSet data",
+                                   description=__doc__)
+    parser.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
+    parser.add_argument("--output", default="evaluation", help="folder for report.md and PNGs (default ./evaluation)")
+    parser.add_argument("--synthetic-samples", type=int, default=128,
+                        help="held-out synthetic pairs (default 128; 0 skips the synthetic part)")
+    parser.add_argument("--synthetic-seed", type=int, default=EVAL_SEED,
+                        help=f"seed of the held-out set (default {EVAL_SEED}; training must use lower seeds)")
+    parser.add_argument("--heldout-meshes", default=None, help="folder of meshes never used in training")
+    parser.add_argument("--synthetic-data", default=None, help="prebuilt held-out set (synth load_dataset)")
+    parser.add_argument("--ablation-checkpoints", nargs="+", default=None, metavar="PT",
+                        help="checkpoints of the control-point ablation (e.g. N_c = 128, 256, 512)")
+    parser.add_argument("--pandaset", default=None,
+                        help=f"PandaSet sequence folder (default {DEFAULT_PANDASET}; skipped if absent)")
+    parser.add_argument("--no-pandaset", action="store_true", help="skip the PandaSet part")
+    parser.add_argument("--max-frames-per-vehicle", type=int, default=10,
+                        help="evenly spaced input frames per vehicle (default 10; 0 = all)")
+    parser.add_argument("--max-vehicles", type=int, default=None, help="first N stationary vehicles only")
+    parser.add_argument("--max-batch", type=int, default=32, help="vehicles per forward pass (default 32)")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
+    parser.set_defaults(func=run_evaluation)
