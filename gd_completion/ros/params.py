@@ -1,0 +1,121 @@
+"""Parameters of the completer node: declarations with descriptions and ranges, read and validated once."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+from gd_completion.errors import BoxError, GDCompletionError
+from gd_completion.pipeline import LABEL_IDS
+from gd_completion.ros.box_messages import parse_class_map
+
+BOXES_TYPES = ("auto", "detection3d", "marker")
+
+
+class ParameterError(GDCompletionError):
+    """A completer parameter with an unusable value."""
+
+
+@dataclass(frozen=True)
+class CompleterParams:
+    """Validated parameter values of one completer node."""
+
+    cloud_topic: str
+    boxes_topic: str
+    output_topic: str
+    boxes_type: str
+    model_path: str
+    device: str
+    num_threads: int
+    num_input_points: int
+    num_output_points: int
+    min_points: int
+    crop_margin: float
+    labels: tuple[str, ...]
+    class_map: dict[str, str]
+    sync_tolerance: float
+    sync_max_wait: float
+    queue_size: int
+    include_input_points: bool
+
+
+def _int(lo: int, hi: int) -> dict[str, Any]:
+    return {"integer_range": [IntegerRange(from_value=lo, to_value=hi, step=1)]}
+
+
+def _float(lo: float, hi: float) -> dict[str, Any]:
+    return {"floating_point_range": [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]}
+
+
+# name -> (default, description, range keyword arguments of ParameterDescriptor)
+PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
+    "cloud_topic": ("points", "Input sensor_msgs/PointCloud2 topic (sensor-data QoS).", {}),
+    "boxes_topic": ("boxes", "Input 3D boxes topic (vision_msgs/Detection3DArray or visualization_msgs/MarkerArray).", {}),
+    "output_topic": ("completed_vehicles", "Output PointCloud2: x, y, z, instance_id, label, generated; input header.", {}),
+    "boxes_type": ("auto", "Boxes message type: auto (Detection3DArray when vision_msgs is installed, else "
+                           "MarkerArray), detection3d or marker.", {}),
+    "model_path": ("", "GGD-Net checkpoint (.pt); empty = the weights shipped with the package.", {}),
+    "device": ("cpu", "Torch device: cpu, cuda or cuda:N.", {}),
+    "num_threads": (0, "Torch CPU threads; 0 = torch default.", _int(0, 256)),
+    "num_input_points": (0, "Points per vehicle fed to the network; must match the checkpoint (0 = take it "
+                            "from the checkpoint).", _int(0, 65536)),
+    "num_output_points": (0, "Points the network generates per vehicle; must match the checkpoint (0 = take it "
+                             "from the checkpoint).", _int(0, 65536)),
+    "min_points": (20, "Vehicles with fewer measured points inside their box are skipped.", _int(1, 1000000)),
+    "crop_margin": (0.1, "Metres added to each side of a box when cropping its points.", _float(0.0, 5.0)),
+    "labels": (["car", "van", "truck"], f"Labels to complete (of {sorted(LABEL_IDS)}).", {}),
+    "class_map": (["1:car", "2:van", "3:truck", "Car:car", "Van:van", "Truck:truck",
+                   "Pedestrian:ignore", "Cyclist:ignore"],
+                  "Detector class id or name -> label, as 'id:label' strings; unmapped names are lower-cased; "
+                  "'ignore' drops the box.", {}),
+    "sync_tolerance": (0.05, "Largest stamp difference (s) between a cloud and its boxes.", _float(0.0, 10.0)),
+    "sync_max_wait": (1.0, "Seconds a cloud (or boxes message) waits for its partner before it is dropped.",
+                      _float(0.01, 60.0)),
+    "queue_size": (10, "Clouds and boxes messages buffered per stream while waiting for their partner.",
+                   _int(1, 1000)),
+    "include_input_points": (True, "Also publish the measured points of each completed vehicle (generated=0).", {}),
+}
+
+
+def declare_parameters(node: Any) -> None:
+    """Declare every completer parameter on `node` with its description and range."""
+    for name, (default, description, ranges) in PARAMETERS.items():
+        node.declare_parameter(name, default, ParameterDescriptor(name=name, description=description, **ranges))
+
+
+def read_parameters(node: Any) -> CompleterParams:
+    """Read the declared parameters and validate them; raises ParameterError naming the parameter."""
+    values = {name: node.get_parameter(name).value for name in PARAMETERS}
+    return validate(values)
+
+
+def validate(values: dict[str, Any]) -> CompleterParams:
+    """Check cross-field rules that a ParameterDescriptor cannot express."""
+    if values["boxes_type"] not in BOXES_TYPES:
+        raise ParameterError(f"parameter boxes_type={values['boxes_type']!r} must be one of {BOXES_TYPES}")
+    device = str(values["device"])
+    if not (device == "cpu" or device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
+        raise ParameterError(f"parameter device={device!r} must be cpu, cuda or cuda:N")
+    labels = tuple(str(v).strip().lower() for v in values["labels"])
+    unknown = [v for v in labels if v not in LABEL_IDS]
+    if not labels or unknown:
+        raise ParameterError(f"parameter labels={list(values['labels'])} must be a non-empty subset of {sorted(LABEL_IDS)}")
+    try:
+        class_map = parse_class_map(values["class_map"])
+    except BoxError as exc:
+        raise ParameterError(f"parameter class_map: {exc}") from exc
+    for name in ("cloud_topic", "boxes_topic", "output_topic"):
+        if not str(values[name]).strip():
+            raise ParameterError(f"parameter {name} must not be empty")
+    return CompleterParams(**{**values, "device": device, "labels": labels, "class_map": class_map})
+
+
+def check_model_sizes(params: CompleterParams, num_input: int, num_output: int, source: str) -> None:
+    """Raise ParameterError when num_input_points / num_output_points disagree with the checkpoint."""
+    for name, wanted, actual in (("num_input_points", params.num_input_points, num_input),
+                                 ("num_output_points", params.num_output_points, num_output)):
+        if wanted and wanted != actual:
+            raise ParameterError(
+                f"parameter {name}={wanted} does not match the checkpoint {source} ({actual}); "
+                f"set it to {actual} or 0 (take it from the checkpoint)")
