@@ -1,0 +1,204 @@
+"""Procedural vehicle meshes: lofted body profile, greenhouse, wheel arches, wheels and mirrors."""
+from __future__ import annotations
+
+import numpy as np
+
+from gd_completion.synth.meshio import Mesh, load_mesh, load_mesh_folder, merge_meshes, sample_surface
+
+__all__ = [
+    "VEHICLE_KINDS", "KIND_SIZE_RANGES", "Mesh", "generate_vehicle", "vehicle_label", "perturb_mesh",
+    "fit_to_size", "load_mesh", "load_mesh_folder", "sample_surface",
+]
+
+VEHICLE_KINDS = ("sedan", "hatchback", "suv", "pickup", "van", "box_truck", "bus")
+
+#: (length, width, height) ranges in metres, bounding box including wheels and mirrors.
+KIND_SIZE_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float], tuple[float, float]]] = {
+    "sedan": ((4.3, 4.9), (1.75, 1.9), (1.4, 1.5)),
+    "hatchback": ((3.7, 4.35), (1.65, 1.82), (1.42, 1.55)),
+    "suv": ((4.4, 5.0), (1.8, 2.0), (1.62, 1.85)),
+    "pickup": ((5.2, 5.9), (1.85, 2.05), (1.75, 1.95)),
+    "van": ((4.8, 6.0), (1.9, 2.1), (1.9, 2.6)),
+    "box_truck": ((6.0, 9.0), (2.3, 2.5), (2.8, 3.5)),
+    "bus": ((10.0, 12.5), (2.45, 2.55), (2.9, 3.3)),
+}
+
+_LABELS = {"sedan": "car", "hatchback": "car", "suv": "car", "pickup": "car", "van": "van",
+           "box_truck": "truck", "bus": "truck"}
+
+# Side profile per kind: top outline as (fraction of length from the rear, fraction of height),
+# body bottom (fraction of height), wheel radius (fraction of height), axle positions (fraction of length),
+# belt line (fraction of height, greenhouse starts above it), greenhouse tumblehome, cross-section squareness,
+# index of the top-outline point where the windscreen starts (mirror position).
+_PROFILES: dict[str, dict] = {
+    "sedan": dict(top=[(0.0, 0.46), (0.01, 0.64), (0.05, 0.69), (0.22, 0.71), (0.36, 1.0), (0.58, 1.0),
+                       (0.75, 0.70), (0.96, 0.62), (1.0, 0.48)],
+                  bottom=0.12, wheel=0.22, axles=(0.2, 0.79), belt=0.66, tumble=0.22, square=5.0, mirror=6),
+    "hatchback": dict(top=[(0.0, 0.45), (0.01, 0.80), (0.06, 0.97), (0.16, 1.0), (0.6, 1.0),
+                           (0.76, 0.68), (0.96, 0.6), (1.0, 0.46)],
+                      bottom=0.11, wheel=0.21, axles=(0.17, 0.82), belt=0.62, tumble=0.2, square=5.0, mirror=5),
+    "suv": dict(top=[(0.0, 0.45), (0.01, 0.86), (0.05, 0.98), (0.1, 1.0), (0.64, 1.0), (0.77, 0.69),
+                     (0.96, 0.63), (1.0, 0.48)],
+                bottom=0.14, wheel=0.23, axles=(0.17, 0.81), belt=0.63, tumble=0.16, square=6.0, mirror=5),
+    "pickup": dict(top=[(0.0, 0.40), (0.01, 0.58), (0.41, 0.58), (0.43, 0.99), (0.46, 1.0), (0.63, 1.0),
+                        (0.74, 0.68), (0.96, 0.63), (1.0, 0.48)],
+                   bottom=0.15, wheel=0.21, axles=(0.16, 0.8), belt=0.6, tumble=0.14, square=6.0, mirror=6),
+    "van": dict(top=[(0.0, 0.3), (0.01, 0.96), (0.03, 1.0), (0.7, 1.0), (0.86, 0.58), (0.97, 0.48),
+                     (1.0, 0.38)],
+                bottom=0.1, wheel=0.16, axles=(0.18, 0.83), belt=0.5, tumble=0.08, square=7.0, mirror=4),
+    "box_truck": dict(top=[(0.0, 0.3), (0.005, 1.0), (0.7, 1.0), (0.715, 0.8), (0.86, 0.8), (0.94, 0.5),
+                           (1.0, 0.42)],
+                      bottom=0.22, wheel=0.15, axles=(0.2, 0.86), belt=0.45, tumble=0.04, square=12.0, mirror=4),
+    "bus": dict(top=[(0.0, 0.3), (0.005, 0.97), (0.02, 1.0), (0.985, 1.0), (1.0, 0.95), (1.0, 0.3)],
+                bottom=0.1, wheel=0.15, axles=(0.22, 0.84), belt=0.35, tumble=0.03, square=12.0, mirror=3),
+}
+
+
+def vehicle_label(kind: str) -> str:
+    """Detection label of a procedural kind: "car", "van" or "truck"."""
+    try:
+        return _LABELS[kind]
+    except KeyError as exc:
+        raise ValueError(f"unknown vehicle kind {kind!r}; expected one of {VEHICLE_KINDS}") from exc
+
+
+def _tube_faces(n_st: int, n_loop: int) -> np.ndarray:
+    """Triangles joining consecutive closed loops of `n_loop` vertices over `n_st` stations."""
+    i, j = np.meshgrid(np.arange(n_st - 1), np.arange(n_loop), indexing="ij")
+    a = i * n_loop + j
+    b = (i + 1) * n_loop + j
+    c = (i + 1) * n_loop + (j + 1) % n_loop
+    d = i * n_loop + (j + 1) % n_loop
+    return np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+
+
+def _cap_faces(start: int, n_loop: int, centre: int, flip: bool) -> np.ndarray:
+    j = np.arange(n_loop)
+    f = np.stack([np.full(n_loop, centre), start + j, start + (j + 1) % n_loop], axis=1)
+    return f[:, [0, 2, 1]] if flip else f
+
+
+def _loft(stations: np.ndarray, loops: np.ndarray) -> Mesh:
+    """Closed tube through `loops` (S, C, 3) with flat end caps."""
+    s, c, _ = loops.shape
+    verts = loops.reshape(-1, 3)
+    centres = np.stack([loops[0].mean(axis=0), loops[-1].mean(axis=0)])
+    faces = np.concatenate([_tube_faces(s, c), _cap_faces(0, c, s * c, True), _cap_faces((s - 1) * c, c, s * c + 1, False)])
+    return Mesh(np.concatenate([verts, centres]), faces)
+
+
+def _box(center: np.ndarray, size: np.ndarray) -> Mesh:
+    corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return Mesh(center + corners * size, faces)
+
+
+def _wheel(center: np.ndarray, radius: float, width: float, n_seg: int = 18) -> Mesh:
+    """Cylinder with its axis along y."""
+    a = np.linspace(0.0, 2 * np.pi, n_seg, endpoint=False)
+    ring = np.stack([radius * np.cos(a), np.zeros(n_seg), radius * np.sin(a)], axis=1)
+    loops = np.stack([ring + [0.0, -width / 2, 0.0], ring + [0.0, width / 2, 0.0]]) + center
+    return _loft(np.array([0.0, 1.0]), loops)
+
+
+def _body(profile: dict, top: np.ndarray, length: float, width: float, height: float,
+          wheel_r: float, axles: np.ndarray, rng: np.random.Generator) -> tuple[Mesh, float]:
+    """Lofted body: the side profile extruded across the width with rounded, tapered sections."""
+    n_uniform = int(np.clip(length * 10, 40, 110))
+    f_st = np.unique(np.concatenate([np.linspace(0.0, 1.0, n_uniform), top[:, 0]]))
+    x = (f_st - 0.5) * length
+    z_top = np.interp(f_st, top[:, 0], top[:, 1]) * height
+    # Body bottom: ground clearance, lifted at the overhangs and cut by the wheel arches.
+    clearance = profile["bottom"] * height
+    overhang = np.clip(np.minimum(f_st, 1 - f_st) / 0.06, 0, 1)
+    z_bot = clearance + (1 - overhang) * 0.25 * (z_top - clearance).clip(0) * 0.6
+    arch_r = wheel_r * rng.uniform(1.08, 1.2)
+    for xa in axles:
+        dx = x - xa
+        inside = np.abs(dx) < arch_r
+        z_bot = np.where(inside, np.maximum(z_bot, wheel_r + np.sqrt(np.clip(arch_r**2 - dx**2, 0, None))), z_bot)
+    z_bot = np.minimum(z_bot, z_top - 0.05 * height)
+    # Plan view: ends rounded inwards.
+    end = np.clip((0.07 - np.minimum(f_st, 1 - f_st)) / 0.07, 0, 1)
+    half_w = width / 2 * (1 - rng.uniform(0.06, 0.14) * end**2)
+    # Rounded-rectangle cross-section (superellipse), greenhouse narrowed above the belt line.
+    n_loop = 28
+    th = np.linspace(0.0, 2 * np.pi, n_loop, endpoint=False)
+    p = profile["square"] * rng.uniform(0.85, 1.15)
+    cy = np.sign(np.cos(th)) * np.abs(np.cos(th)) ** (2 / p)
+    cz = np.sign(np.sin(th)) * np.abs(np.sin(th)) ** (2 / p)
+    zc, hh = (z_top + z_bot) / 2, (z_top - z_bot) / 2
+    zz = zc[:, None] + hh[:, None] * cz[None, :]
+    belt = profile["belt"] * height * rng.uniform(0.97, 1.03)
+    tumble = profile["tumble"] * rng.uniform(0.8, 1.2)
+    g = np.clip((zz - belt) / max(height - belt, 1e-6), 0, 1)
+    yy = half_w[:, None] * cy[None, :] * (1 - tumble * g)
+    loops = np.stack([np.broadcast_to(x[:, None], zz.shape), yy, zz], axis=-1)
+    return _loft(x, loops), belt
+
+
+def generate_vehicle(rng: np.random.Generator, kind: str | None = None) -> Mesh:
+    """Random vehicle mesh (metres, x forward, y left, z up) centred on its bounding box."""
+    if kind is None:
+        kind = VEHICLE_KINDS[int(rng.integers(len(VEHICLE_KINDS)))]
+    if kind not in _PROFILES:
+        raise ValueError(f"unknown vehicle kind {kind!r}; expected one of {VEHICLE_KINDS}")
+    prof = _PROFILES[kind]
+    (l0, l1), (w0, w1), (h0, h1) = KIND_SIZE_RANGES[kind]
+    length, width, height = rng.uniform(l0, l1), rng.uniform(w0, w1), rng.uniform(h0, h1)
+    # Jitter the profile key points (keeping the ends and the ordering).
+    top = np.array(prof["top"], dtype=np.float64)
+    inner = (top[:, 0] > 0) & (top[:, 0] < 1)
+    top[inner, 0] += rng.uniform(-0.012, 0.012, inner.sum())
+    top[:, 0] = np.maximum.accumulate(top[:, 0])
+    top[:, 1] = np.clip(top[:, 1] + np.where(top[:, 1] < 0.999, rng.uniform(-0.03, 0.03, len(top)), 0), 0.25, 1.0)
+    wheel_r = prof["wheel"] * height * rng.uniform(0.92, 1.08)
+    wheel_r = min(wheel_r, 0.55)
+    axles = (np.array(prof["axles"]) + rng.uniform(-0.015, 0.015, 2) - 0.5) * length
+    mirror_out = 0.06 * width if kind not in ("bus", "box_truck") else 0.05 * width
+    body_w = width - 2 * mirror_out
+    body, belt = _body(prof, top, length, body_w, height, wheel_r, axles, rng)
+    parts = [body]
+    tyre_w = np.clip(0.12 * body_w, 0.18, 0.3)
+    wy = body_w / 2 - tyre_w / 2 - 0.02
+    rear_axles = [axles[0]] if kind != "bus" or rng.random() < 0.7 else [axles[0], axles[0] - 2.2 * wheel_r]
+    for xa in rear_axles + [axles[1]]:
+        for side in (-1.0, 1.0):
+            parts.append(_wheel(np.array([xa, side * wy, wheel_r]), wheel_r, tyre_w))
+    # Mirrors at the base of the windscreen.
+    fm = top[prof["mirror"], 0]
+    mx = (fm - 0.5) * length + 0.04 * length * (kind in ("bus", "van", "box_truck"))
+    mz = belt + rng.uniform(0.05, 0.15)
+    msize = np.array([0.12, mirror_out + 0.06, 0.13]) * (1.6 if kind in ("bus", "box_truck") else 1.0)
+    for side in (-1.0, 1.0):
+        parts.append(_box(np.array([min(mx, length / 2 - 0.1), side * (width / 2 - msize[1] / 2), mz]), msize))
+    mesh = merge_meshes(parts)
+    mesh = _deform(mesh, rng, 0.02)
+    return fit_to_size(mesh, np.array([length, width, height]))
+
+
+def _deform(mesh: Mesh, rng: np.random.Generator, amount: float) -> Mesh:
+    """Mild smooth deformation: bend, plan-view trapezoid and lean, each up to `amount` of the size."""
+    v = mesh.vertices.copy()
+    ext = np.maximum(mesh.extent, 1e-9)
+    lo = mesh.bounds[0]
+    u = (v - lo) / ext - 0.5  # in [-0.5, 0.5]
+    a = rng.uniform(-amount, amount, 3)
+    v[:, 2] += a[0] * ext[2] * (4 * u[:, 0] ** 2)
+    v[:, 1] *= 1 + a[1] * 2 * u[:, 0]
+    v[:, 0] += a[2] * ext[0] * 0.5 * (u[:, 2] + 0.5)
+    return Mesh(v, mesh.faces)
+
+
+def fit_to_size(mesh: Mesh, size: np.ndarray) -> Mesh:
+    """Copy scaled per axis to the bounding-box `size` (x, y, z) and centred on the bounding box."""
+    m = mesh.centered()
+    return Mesh(m.vertices * (np.asarray(size, dtype=np.float64) / np.maximum(m.extent, 1e-9)), m.faces)
+
+
+def perturb_mesh(mesh: Mesh, rng: np.random.Generator, *, scale: tuple[float, float] = (0.9, 1.1),
+                 deform: float = 0.02) -> Mesh:
+    """Random anisotropic scale (per axis in `scale`) and mild deformation; result centred on its bbox."""
+    m = _deform(mesh, rng, deform)
+    return fit_to_size(m, mesh.extent * rng.uniform(scale[0], scale[1], 3))
