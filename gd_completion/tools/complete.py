@@ -26,6 +26,7 @@ class CompletionSummary:
     vehicles_completed: int = 0
     skipped: Counter = field(default_factory=Counter)
     frames_without_boxes: int = 0
+    ignored_boxes: int = 0
     seconds: float = 0.0
     output_topic: str = ""
 
@@ -35,6 +36,7 @@ class CompletionSummary:
         rate = self.frames / self.seconds if self.seconds > 0 else 0.0
         return (f"{self.frames} frames ({rate:.1f} frames/s, {self.seconds:.1f} s), "
                 f"{self.vehicles_completed} vehicles completed, skipped: {reasons}; "
+                f"{self.ignored_boxes} boxes of other classes ignored; "
                 f"{self.frames_without_boxes} frames without boxes; {self.copied_messages} input messages copied; "
                 f"completions on {self.output_topic}")
 
@@ -174,6 +176,7 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                 result = completer.complete_frame(read_xyz(cloud), frame_boxes)
                 summary.vehicles_completed += int(result.stats.completed)
                 summary.skipped.update(result.stats.skipped)
+                summary.ignored_boxes += int(getattr(result.stats, "ignored_labels", 0))
                 msg = bagio.pointcloud2_msg(write_points(completion_to_structured(result)),
                                             cloud.header.frame_id, stamp)
                 writer.write(out_conn, timestamp, bagio.serialize(msg, bagio.POINTCLOUD2))
