@@ -99,3 +99,151 @@ def test_network_baselines_match_generate_and_forward():
     # The first N_c points of P_g are FPS control points copied from the (resampled) input.
     assert float(metrics.fidelity(generated[2, :TINY.num_control], clouds[2])) < 1e-10
     assert not np.allclose(generated, completion)
+
+
+# --- synthetic ---------------------------------------------------------------------------------------
+
+def _box_surface(rng: np.random.Generator, n: int, size=(1.0, 0.4, 0.3)) -> np.ndarray:
+    half = np.array(size) / 2.0
+    pts = rng.uniform(-1.0, 1.0, size=(n, 3)) * half
+    axis = rng.integers(0, 3, n)
+    pts[np.arange(n), axis] = np.sign(rng.normal(size=n)) * half[axis]
+    return pts.astype(np.float32)
+
+
+def _half_box_pairs(n_pairs: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(7)
+    partial, complete = [], []
+    for _ in range(n_pairs):
+        full = _box_surface(rng, 6000)
+        left = full[full[:, 1] > 0.0]
+        partial.append(left[rng.choice(len(left), 1024, replace=False)])
+        complete.append(full[rng.choice(len(full), 2048, replace=False)])
+    return np.stack(partial), np.stack(complete)
+
+
+def test_evaluate_synthetic_values():
+    from gd_completion.evaluation.synthetic import evaluate_synthetic
+
+    partial, complete = _half_box_pairs()
+    torch.manual_seed(0)
+    result = evaluate_synthetic(GGDNet(TINY).eval(), partial, complete, seed=5, source="test")
+    assert set(result.metrics) == set(baselines.BASELINE_NAMES)
+    for name, m in result.metrics.items():
+        assert m["cd"] == pytest.approx(m["cd_dg"] + m["cd_gd"], rel=1e-5), name
+    brute_dg = np.mean([((p[:, None] - g[None]) ** 2).sum(-1).min(1).mean() for p, g in zip(partial, complete)])
+    assert result.metrics["input"]["cd_dg"] == pytest.approx(brute_dg * 1e4, rel=1e-4)
+    assert result.metrics["input"]["fidelity"] == 0.0
+    assert result.metrics["mirror"]["fidelity"] == 0.0
+    # Mirroring the seen half of a symmetric shape restores completeness (GT -> output) by a wide margin.
+    assert result.metrics["mirror"]["cd_gd"] < result.metrics["input"]["cd_gd"] / 10
+    assert result.metrics["ggd"]["fidelity"] > 0.0
+
+
+def test_reference_sample_is_voxel_uniform():
+    from gd_completion.evaluation.pandaset_eval import reference_sample
+
+    rng = np.random.default_rng(2)
+    spread = _box_surface(rng, 3000)
+    cluster = np.repeat(_pts([0.5, 0.0, 0.0]), 10000, axis=0)  # 10000 returns on one spot (a near surface)
+    agg = np.concatenate([cluster, spread])
+    sample = reference_sample(agg, 1024)
+    assert sample.shape == (1024, 3)
+    assert float(metrics.nearest_sq_distance(sample, agg).max()) == 0.0  # every sample is an aggregate point
+    assert int((sample == cluster[0]).all(1).sum()) <= 2  # random picks would take ~3/4 from the cluster
+    small = reference_sample(spread[:100], 256)
+    assert small.shape == (256, 3)
+
+
+def test_size_bins():
+    from gd_completion.evaluation.pandaset_eval import size_bin
+
+    assert [size_bin(n) for n in (49, 50, 199, 200, 999, 1000, 50000)] == [
+        "", "50-200", "50-200", "200-1000", "200-1000", ">1000", ">1000"]
+
+
+# --- PandaSet ----------------------------------------------------------------------------------------
+
+def test_pandaset_aggregate_of_a_parked_vehicle(shared_data):
+    from gd_completion.datasets.pandaset import PandaSetSequence
+    from gd_completion.evaluation.pandaset_eval import collect_tracks, stationary_vehicles
+    from gd_completion.pipeline import VehicleCompleter
+
+    root = shared_data / "pandaset-002"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    sequence = PandaSetSequence(root)
+    vehicles = stationary_vehicles(sequence)
+    assert "Car" in vehicles.values() and all(not v.startswith("Pedestrian") for v in vehicles.values())
+    completer = VehicleCompleter(GGDNet(TINY), labels=("car", "truck"), min_points=1, margin=0.1)
+    cars = {u: c for u, c in vehicles.items() if c == "Car"}
+    few = collect_tracks(sequence, cars, completer, frames=range(0, 6))
+    uuid = max(few, key=lambda u: len(few[u].aggregate()))
+    track_few = few[uuid]
+    track_many = collect_tracks(sequence, {uuid: "Car"}, completer, frames=range(0, 24))[uuid]
+    assert len(track_few.frames) >= 3
+    assert set(track_few.frames) < set(track_many.frames)
+    assert len(track_many.aggregate()) > len(track_few.aggregate()) > 1000
+
+    agg = track_many.aggregate()
+    length = min(b.size[0] for b in track_many.boxes)
+    width = max(b.size[1] for b in track_many.boxes)
+    height = max(b.size[2] for b in track_many.boxes)
+    longest = max(b.size[0] for b in track_many.boxes)
+    assert np.all(np.abs(agg[:, 0]) <= (longest / 2 + 0.1) / length + 1e-5)
+    assert np.all(np.abs(agg[:, 1]) <= (width / 2 + 0.1) / length + 1e-5)
+    assert np.all(np.abs(agg[:, 2]) <= (height / 2 + 0.1) / length + 1e-5)
+    # Length along normalised x (data README: dimensions.y is the length, heading = yaw + pi/2): the
+    # aggregate spans most of the box length along x and no more than the width along y.
+    assert np.ptp(agg[:, 0]) > 0.8
+    assert np.ptp(agg[:, 1]) < (width + 0.2) / length
+    # Frames agree: each frame's points lie on the surface seen in the other frames (within a few cm).
+    first = track_many.points[0]
+    others = np.concatenate(track_many.points[1:])
+    rms_m = float(metrics.fidelity(first, others)) ** 0.5 * length
+    assert rms_m < 0.04
+
+
+# --- the evaluate command ----------------------------------------------------------------------------
+
+def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
+    import argparse
+
+    from gd_completion import cli
+    from gd_completion.tools import evaluate
+
+    assert "gd_completion.tools.evaluate" in cli.SUBCOMMAND_MODULES
+    torch.manual_seed(0)
+    model_path = save_checkpoint(tmp_path / "tiny.pt", GGDNet(TINY))
+    nc64 = GGDConfig(**{**TINY.to_dict(), "num_control": 64, "tree_arity": [8, 4, 6]})
+    ablation = save_checkpoint(tmp_path / "nc64.pt", GGDNet(nc64))
+    partial, complete = _half_box_pairs(3)
+    seen = {}
+
+    def fake_heldout(n, *, seed, mesh_dir=None, path=None):
+        seen.update(n=n, seed=seed)
+        return partial[:n], complete[:n], "test pairs"
+
+    monkeypatch.setattr(evaluate, "load_heldout", fake_heldout)
+    parser = argparse.ArgumentParser()
+    evaluate.register(parser.add_subparsers())
+    out = tmp_path / "report"
+    args = parser.parse_args(["evaluate", "--model", str(model_path), "--output", str(out),
+                              "--synthetic-samples", "2", "--ablation-checkpoints", str(ablation), str(model_path),
+                              "--pandaset", str(shared_data / "pandaset-002"), "--max-vehicles", "2",
+                              "--max-frames-per-vehicle", "2", "--threads", "1"])
+    assert args.func(args) == 0
+    assert seen == {"n": 2, "seed": evaluate.EVAL_SEED}
+    text = (out / "report.md").read_text()
+    printed = capsys.readouterr().out
+    for heading in ("## Synthetic held-out set", "## Control-point ablation", "## PandaSet 002",
+                    "Coverage error x1e3", "Fidelity x1e3", "GGD-Net", "mirror symmetry", "generation only"):
+        assert heading in text and heading in printed
+    ablation_rows = [line for line in text.splitlines() if line.startswith("| 32 ") or line.startswith("| 64 ")]
+    assert [r.split()[1] for r in ablation_rows] == ["32", "64"]
+    pandaset_rows = [line for line in text.split("## PandaSet")[1].splitlines() if line.startswith("| raw input")]
+    assert len(pandaset_rows) == 2
+    assert pandaset_rows[1].split("|")[2].strip() == "0.000"  # raw input is perfectly faithful to itself
+    assert float(pandaset_rows[0].split("|")[2]) > 0.0
+    assert (out / "pandaset_vehicles.png").stat().st_size > 10_000
+    assert (out / "synthetic_vehicles.png").stat().st_size > 10_000
