@@ -106,3 +106,17 @@ def test_not_a_pandaset_folder(tmp_path: Path, capsys: pytest.CaptureFixture) ->
     out = tmp_path / "bag"
     assert main(["convert", "pandaset", str(tmp_path), str(out)]) == 2
     assert "lidar/" in capsys.readouterr().err and not out.exists()
+
+
+def test_corrupt_lidar_file(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    root = tmp_path / "seq"
+    (root / "lidar").mkdir(parents=True)
+    (root / "cuboids").symlink_to(shared_data / SEQ / "cuboids")
+    for name in ("poses.json", "timestamps.json", "00.npz"):
+        (root / "lidar" / name).symlink_to(shared_data / SEQ / "lidar" / name)
+    (root / "lidar" / "01.npz").write_bytes((shared_data / SEQ / "lidar" / "01.npz").read_bytes()[:5000])
+    out = tmp_path / "bag"
+    assert main(["convert", "pandaset", str(root), str(out), "--frames", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "01.npz" in err and "error" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]
