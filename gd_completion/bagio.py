@@ -84,7 +84,7 @@ def atomic_bag_writer(path: str | Path, *, storage: str = "mcap", overwrite: boo
 
     On any exception the temporary bag is deleted and nothing appears under `path`.
     """
-    from rosbags.rosbag2 import Writer
+    from rosbags.rosbag2 import Writer, WriterError
 
     final = Path(path)
     if final.exists() and not overwrite:
@@ -102,11 +102,13 @@ def atomic_bag_writer(path: str | Path, *, storage: str = "mcap", overwrite: boo
         if final.exists():
             shutil.rmtree(final) if final.is_dir() else final.unlink()
         os.replace(tmp_bag, final)
-    except BaseException:
+    except BaseException as error:
         try:
             writer.abort()
         except Exception:
             pass
+        if isinstance(error, WriterError):
+            raise BagError(f"{final}: cannot write bag: {error}") from error
         raise
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
