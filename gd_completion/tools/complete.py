@@ -87,10 +87,9 @@ def read_boxes(reader: Any, topic: str, msgtype: str) -> dict[int, tuple[str, li
         if msgtype == bagio.DETECTION3D_ARRAY:
             hdr = msg.header
         else:
-            adds = [m for m in msg.markers if m.action == bagio.MARKER_ADD]
-            if not adds:
+            if not len(msg.markers):  # an empty MarkerArray has no header to pair by
                 continue
-            hdr = adds[0].header
+            hdr = msg.markers[-1].header
         out[bagio.stamp_ns(hdr.stamp)] = (hdr.frame_id, bagio.boxes_from_message(msg, msgtype))
     return out
 
