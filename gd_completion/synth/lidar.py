@@ -262,7 +262,7 @@ def scan_meshes(meshes: list[Mesh], sensor_position: np.ndarray | tuple[float, f
                     u = (dx * b_vec[tri, 0] + dy * b_vec[tri, 1] + dz * b_vec[tri, 2]) * inv
                     v = (dx * c_vec[tri, 0] + dy * c_vec[tri, 1] + dz * c_vec[tri, 2]) * inv
                     t = t_num[tri] * inv
-                ok = (np.abs(det) > 1e-12) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-6) & (t <= max_range)
+                    ok = (np.abs(det) > 1e-12) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-6) & (t <= max_range)
                 hit_ray.append(beam[ok] * n_az + j[ok])
                 hit_t.append(t[ok])
                 hit_tri.append(tri[ok])
