@@ -90,7 +90,7 @@ def render_vehicles(path: str | Path,
         raise ValueError("render_vehicles needs at least one vehicle")
     columns = min(max_columns, len(items))
     rows = -(-len(items) // columns)
-    fig, axes = plt.subplots(2 * rows, columns, figsize=(3.6 * columns, 3.4 * rows), dpi=110, squeeze=False)
+    fig, axes = plt.subplots(2 * rows, columns, figsize=(3.6 * columns, 3.8 * rows), dpi=110, squeeze=False)
     for ax in axes.flat:
         ax.set_axis_off()
     for k, (title, partial, completion, reference) in enumerate(items):
@@ -100,7 +100,7 @@ def render_vehicles(path: str | Path,
                   (_xyz(partial), INPUT_COLOUR, 1.5, "input")]
         stacked = np.concatenate([cl for cl, *_ in clouds]) if any(len(cl) for cl, *_ in clouds) else np.zeros((1, 3))
         lo, hi = stacked.min(axis=0), stacked.max(axis=0)
-        centre, half = (lo + hi) / 2.0, float((hi - lo).max()) / 2.0 * 1.1 + 1e-3
+        centre, half = (lo + hi) / 2.0, (hi - lo) / 2.0 * 1.1 + 0.02 * float((hi - lo).max()) + 1e-3
         for row, (a, b, name) in enumerate(((0, 2, "side"), (0, 1, "top"))):
             ax = axes[2 * r + row, c]
             ax.set_axis_on()
@@ -108,8 +108,8 @@ def render_vehicles(path: str | Path,
                 if len(cloud):
                     ax.scatter(cloud[:, a], cloud[:, b], s=size, c=colour, linewidths=0, label=label,
                                rasterized=True)
-            ax.set_xlim(centre[a] - half, centre[a] + half)
-            ax.set_ylim(centre[b] - half, centre[b] + half)
+            ax.set_xlim(centre[a] - half[a], centre[a] + half[a])
+            ax.set_ylim(centre[b] - half[b], centre[b] + half[b])
             ax.set_aspect("equal")
             ax.set_xticks([])
             ax.set_yticks([])

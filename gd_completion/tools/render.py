@@ -27,8 +27,11 @@ def _messages_at(reader: Any, topic: str, msgtype: str, stamp: int) -> Any | Non
 
 def render_bag_frame(bag: str | Path, out: str | Path, *, frame: int = 0, cloud_topic: str | None = None,
                      boxes_topic: str | None = None, completed_topic: str | None = None,
-                     vehicles_out: str | Path | None = None) -> list[Path]:
-    """Render frame `frame` (index among the cloud messages) of `bag`; returns the written PNG paths."""
+                     vehicles_out: str | Path | None = None, max_vehicles: int = 12) -> list[Path]:
+    """Render frame `frame` (index among the cloud messages) of `bag`; returns the written PNG paths.
+
+    The per-vehicle image shows the `max_vehicles` completed vehicles with the most measured points.
+    """
     with bagio.open_bag(bag) as reader:
         cloud_topic, boxes_topic, boxes_type = pick_topics(reader, cloud_topic, boxes_topic)
         completed_topic = completed_topic or default_output_topic(cloud_topic)
@@ -62,15 +65,16 @@ def render_bag_frame(bag: str | Path, out: str | Path, *, frame: int = 0, cloud_
             measured = normalize(xyz[rows & (comp["generated"] == 0)], box)
             gen = normalize(xyz[rows & (comp["generated"] == 1)], box)
             items.append((f"{box.label} #{box.instance_id}", measured, gen, None))
+        items.sort(key=lambda item: -len(item[1]))
         if items:
-            written.append(render_vehicles(vehicles_out, items))
+            written.append(render_vehicles(vehicles_out, items[:max_vehicles]))
     return written
 
 
 def _run(args: argparse.Namespace) -> int:
     paths = render_bag_frame(args.bag, args.output, frame=args.frame, cloud_topic=args.cloud_topic,
                              boxes_topic=args.boxes_topic, completed_topic=args.completed_topic,
-                             vehicles_out=args.vehicles)
+                             vehicles_out=args.vehicles, max_vehicles=args.max_vehicles)
     for path in paths:
         print(f"wrote {path}")
     return 0
@@ -86,4 +90,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--boxes-topic", default=None)
     parser.add_argument("--completed-topic", default=None, help="default: <namespace>/completed")
     parser.add_argument("--vehicles", default=None, help="also write per-vehicle side/top views to this PNG")
+    parser.add_argument("--max-vehicles", type=int, default=12,
+                        help="vehicles in the --vehicles image, most measured points first (default 12)")
     parser.set_defaults(func=_run)
