@@ -1,0 +1,486 @@
+"""The completer node in a subprocess against real rclpy pub/sub: KITTI frames in, completed vehicles out,
+bad input skipped and counted in /diagnostics, clean exit on SIGTERM/SIGINT."""
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gd_completion.geometry import Box3D, crop_boxes
+from gd_completion.pipeline import LABEL_IDS
+from gd_completion.pointcloud2 import read_points
+
+from kitti_frames import KittiFrame, cloud_msg, marker_array, read_frame
+
+rclpy = pytest.importorskip("rclpy")
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.qos import QoSProfile, qos_profile_sensor_data  # noqa: E402
+from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
+from visualization_msgs.msg import MarkerArray  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+DOMAIN_ID = 220 + os.getpid() % 12  # 220..231: apart from the 120..219 other ROS tests use
+NUM_OUTPUT = 2048  # points the shipped model generates per vehicle
+# Large PointCloud2 over Fast DDS's default transports loses fragments between processes here; this profile
+# (big shared-memory segment, big UDP buffers) is given to both sides.
+FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <transport_descriptors>
+    <transport_descriptor><transport_id>shm_large</transport_id><type>SHM</type>
+      <segment_size>33554432</segment_size><maxMessageSize>16777216</maxMessageSize></transport_descriptor>
+    <transport_descriptor><transport_id>udp_large</transport_id><type>UDPv4</type>
+      <sendBufferSize>4194304</sendBufferSize><receiveBufferSize>4194304</receiveBufferSize></transport_descriptor>
+  </transport_descriptors>
+  <participant profile_name="gd_completion_tests" is_default_profile="true"><rtps>
+    <userTransports><transport_id>shm_large</transport_id><transport_id>udp_large</transport_id></userTransports>
+    <useBuiltinTransports>false</useBuiltinTransports></rtps></participant>
+</profiles>
+"""
+
+
+def ros_env(tmp: Path) -> dict[str, str]:
+    profile = tmp / "fastdds_large.xml"
+    profile.write_text(FASTDDS_PROFILE)
+    return {"ROS_DOMAIN_ID": str(DOMAIN_ID), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+            "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile), "ROS_LOG_DIR": str(tmp / "roslog"),
+            "RCUTILS_COLORIZED_OUTPUT": "0", "PYTHONUNBUFFERED": "1"}
+
+
+# -- test frames ---------------------------------------------------------------------------------------
+
+def around_boxes(frame: KittiFrame, radius: float = 12.0) -> KittiFrame:
+    """The real frame cut to the points within `radius` m (xy) of a box: small messages, same vehicles."""
+    centres = np.array([b.center[:2] for b in frame.boxes])
+    d2 = ((frame.points[:, None, :2] - centres[None]) ** 2).sum(-1)
+    return KittiFrame(frame.index, frame.points[(d2 < radius**2).any(1)], frame.boxes)
+
+
+@pytest.fixture(scope="module")
+def frames(shared_data: Path) -> dict[int, KittiFrame]:
+    training = shared_data / "kitti-object-sample" / "training"
+    return {i: around_boxes(read_frame(training, f"{i:06d}")) for i in (1, 3, 4)}
+
+
+# -- node process --------------------------------------------------------------------------------------
+
+class NodeProcess:
+    """`python -m gd_completion.ros.completer_node` with stdout/stderr in files."""
+
+    def __init__(self, tmp: Path, params: dict[str, str], env: dict[str, str], name: str) -> None:
+        self.stderr_path = tmp / f"{name}.stderr"
+        args = [sys.executable, "-m", "gd_completion.ros.completer_node", "--ros-args"]
+        for k, v in params.items():
+            args += ["-p", f"{k}:={v}"]
+        self._err = open(self.stderr_path, "w")
+        full_env = {**os.environ, **env}
+        full_env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in full_env.get("PYTHONPATH", "").split(
+            os.pathsep) if p])
+        self.proc = subprocess.Popen(args, cwd=REPO, env=full_env, stdout=subprocess.DEVNULL, stderr=self._err)
+
+    @property
+    def stderr(self) -> str:
+        return self.stderr_path.read_text()
+
+    def wait_ready(self, timeout: float = 90.0) -> None:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if "completer ready" in self.stderr:
+                return
+            if self.proc.poll() is not None:
+                pytest.fail(f"completer exited with {self.proc.returncode} before ready:\n{self.stderr[-3000:]}")
+            time.sleep(0.1)
+        pytest.fail(f"completer not ready after {timeout} s:\n{self.stderr[-3000:]}")
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 20.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        try:
+            return self.proc.wait(timeout)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+            self._err.close()
+
+
+# -- test-side ROS client ------------------------------------------------------------------------------
+
+class Client:
+    """Publishes clouds and boxes, collects completed clouds by stamp and the node's latest diagnostics."""
+
+    def __init__(self, context, boxes_cls=MarkerArray, prefix: str = "") -> None:
+        self.node = rclpy.create_node(f"completer_test_client{prefix}", context=context)
+        self.cloud_pub = self.node.create_publisher(PointCloud2, f"{prefix}points", qos_profile_sensor_data)
+        self.boxes_pub = self.node.create_publisher(boxes_cls, f"{prefix}boxes", QoSProfile(depth=10))
+        self._cond = threading.Condition()
+        self.replies: dict[int, PointCloud2] = {}
+        self.diag: dict[str, float] = {}
+        self.diag_count = 0
+        self.node.create_subscription(PointCloud2, f"{prefix}completed_vehicles", self._on_reply, QoSProfile(depth=50))
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, QoSProfile(depth=10))
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._thread.start()
+        self.stamp_ns = 1_000_000_000_000
+
+    def _on_reply(self, msg: PointCloud2) -> None:
+        with self._cond:
+            self.replies[msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec] = msg
+            self._cond.notify_all()
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name.endswith("vehicle completion"):
+                with self._cond:
+                    self.diag = {kv.key: float(kv.value) for kv in status.values}
+                    self.diag_count += 1
+                    self._cond.notify_all()
+
+    def next_stamp(self) -> int:
+        self.stamp_ns += 1_000_000_000
+        return self.stamp_ns
+
+    def wait_reply(self, stamp_ns: int, timeout: float = 20.0) -> PointCloud2 | None:
+        with self._cond:
+            self._cond.wait_for(lambda: stamp_ns in self.replies, timeout)
+            return self.replies.get(stamp_ns)
+
+    def send(self, frame: KittiFrame, stamp_ns: int | None = None, *, boxes: list[Box3D] | None = None,
+             cloud=None, frame_id: str = "velodyne") -> int:
+        stamp_ns = stamp_ns or self.next_stamp()
+        self.cloud_pub.publish(cloud if cloud is not None else cloud_msg(frame.points, stamp_ns, frame_id))
+        self.boxes_pub.publish(self.boxes_msg(frame.boxes if boxes is None else boxes, stamp_ns, frame_id))
+        return stamp_ns
+
+    def boxes_msg(self, boxes, stamp_ns, frame_id):
+        return marker_array(boxes, stamp_ns, frame_id)
+
+    def warm_up(self, frame: KittiFrame, timeout: float = 30.0) -> None:
+        """Send frames until one is answered: both directions of discovery are then complete."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if self.wait_reply(self.send(frame), timeout=0.7) is not None:
+                return
+        pytest.fail("the completer never answered a frame")
+
+    def settled_diagnostics(self, timeout: float = 10.0) -> dict[str, float]:
+        """The first diagnostics report that counts every reply received so far."""
+        with self._cond:
+            ok = self._cond.wait_for(lambda: self.diag.get("frames_published", -1) >= len(self.replies), timeout)
+            assert ok, f"diagnostics never caught up with {len(self.replies)} replies: {self.diag}"
+            return dict(self.diag)
+
+    def wait_diagnostics(self, base: dict[str, float], expected: dict[str, int], timeout: float = 10.0
+                         ) -> dict[str, float]:
+        """Wait until every counter in `expected` grew by at least that much over `base`; returns the deltas."""
+        def deltas() -> dict[str, float]:
+            return {k: self.diag.get(k, 0) - base.get(k, 0) for k in expected}
+        with self._cond:
+            self._cond.wait_for(lambda: all(deltas()[k] >= v for k, v in expected.items()), timeout)
+            return deltas()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+@pytest.fixture(scope="module")
+def ros_context(tmp_path_factory):
+    env = ros_env(tmp_path_factory.mktemp("ros"))
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)  # the Fast DDS profile is read from the environment when the participant starts
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    yield env, context
+    rclpy.try_shutdown(context=context)
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+BASE_PARAMS = {"num_threads": "1", "boxes_type": "marker", "sync_tolerance": "0.05", "sync_max_wait": "2.0"}
+
+
+@pytest.fixture(scope="module")
+def marker_node(ros_context, frames, tmp_path_factory):
+    env, context = ros_context
+    node = NodeProcess(tmp_path_factory.mktemp("node"), BASE_PARAMS, env, "marker")
+    node.wait_ready()
+    client = Client(context)
+    client.warm_up(frames[3])
+    yield node, client
+    client.close()
+    node.stop(signal.SIGKILL)
+
+
+# -- checks --------------------------------------------------------------------------------------------
+
+def check_completion(msg: PointCloud2, frame: KittiFrame, stamp_ns: int, expected_ids: set[int]) -> np.ndarray:
+    """Header kept, fields as documented, each expected vehicle measured + generated and inside its box."""
+    assert msg.header.frame_id == "velodyne"
+    assert msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec == stamp_ns
+    pts = read_points(msg)
+    assert pts.dtype.names == ("x", "y", "z", "instance_id", "label", "generated")
+    assert [pts.dtype[n] for n in pts.dtype.names] == [np.dtype("<f4")] * 3 + [np.dtype("<i4"), np.dtype("u1"),
+                                                                                 np.dtype("u1")]
+    assert set(np.unique(pts["instance_id"]).tolist()) == expected_ids
+    boxes = {b.instance_id: b for b in frame.boxes}
+    for iid in expected_ids:
+        box = boxes[iid]
+        mine = pts[pts["instance_id"] == iid]
+        xyz = np.stack([mine["x"], mine["y"], mine["z"]], 1)
+        assert np.isfinite(xyz).all()
+        assert (mine["label"] == LABEL_IDS[box.label]).all()
+        assert (mine["generated"] == 1).sum() == NUM_OUTPUT
+        assert (mine["generated"] == 0).sum() > 0
+        grown = Box3D(box.center, tuple(s + 1.0 for s in box.size), box.yaw)  # 0.5 m on every side
+        inside = len(crop_boxes(xyz, [grown], 0.0)[0]) / len(xyz)
+        assert inside >= 0.9, f"instance {iid}: only {inside:.1%} of its points within its box + 0.5 m"
+        # the generated shape spans the vehicle, not a blob at its centre
+        gen = xyz[mine["generated"] == 1] - np.asarray(box.center)
+        along = gen[:, :2] @ np.array([math.cos(box.yaw), math.sin(box.yaw)])
+        assert np.ptp(along) > 0.6 * box.size[0]
+    return pts
+
+
+# -- tests: good frames --------------------------------------------------------------------------------
+
+def test_completes_kitti_frames_from_markers(marker_node, frames):
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    for index, expected in ((3, {0}), (4, {0, 1}), (1, {0})):  # frame 1: the 9-point car (id 1) is skipped
+        stamp = client.send(frames[index])
+        msg = client.wait_reply(stamp)
+        assert msg is not None, f"no completion for KITTI frame {index}\n{node.stderr[-2000:]}"
+        check_completion(msg, frames[index], stamp, expected)
+    deltas = client.wait_diagnostics(base, {"vehicles_completed": 4, "skipped_too_few_points": 1, "frames_published": 3})
+    assert deltas == {"vehicles_completed": 4, "skipped_too_few_points": 1, "frames_published": 3}
+    assert node.stderr.count("completer ready") == 1
+    assert client.diag["latency_p95_ms"] > 0 and client.diag["rate_hz"] > 0
+
+
+def test_slow_model_newest_frame_wins(marker_node, frames):
+    """Frames faster than the model: no backlog, older pending frames dropped and counted, newest answered."""
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    stamps = [client.send(frames[4]) for _ in range(6)]
+    assert client.wait_reply(stamps[-1]) is not None
+    deltas = client.wait_diagnostics(base, {"frames_published": 1, "drop_superseded": 1})
+    answered = sum(s in client.replies for s in stamps)
+    assert deltas["drop_superseded"] >= 1
+    time.sleep(0.5)
+    deltas = client.wait_diagnostics(base, {"frames_published": answered, "drop_superseded": 6 - answered})
+    assert deltas["frames_published"] + deltas["drop_superseded"] == 6  # every frame answered or counted
+
+
+# -- tests: bad input ----------------------------------------------------------------------------------
+
+def _bad_field_cloud(frame: KittiFrame, stamp: int, mutate) -> PointCloud2:
+    msg = cloud_msg(frame.points, stamp)
+    mutate(msg)
+    return msg
+
+
+def _rename_xyz(msg):
+    msg.fields = [PointField(name=n, offset=f.offset, datatype=f.datatype, count=1)
+                  for n, f in zip("abcd", msg.fields)]
+
+
+def _bad_datatype(msg):
+    msg.fields[0].datatype = 42
+
+
+def _short_data(msg):
+    msg.data = msg.data[: len(msg.data) // 2]
+
+
+def _big_endian(msg):
+    """A correct big-endian encoding of the same points: the node must read it, not just survive it."""
+    be = np.frombuffer(bytes(msg.data), dtype="<f4").astype(">f4")
+    msg.data = be.tobytes()
+    msg.is_bigendian = True
+
+
+BAD_CLOUDS = {"missing_xyz": _rename_xyz, "unsupported_datatype": _bad_datatype, "short_data": _short_data}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CLOUDS))
+def test_malformed_cloud_is_skipped(marker_node, frames, case):
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    bad_stamp = client.next_stamp()
+    client.send(frames[3], bad_stamp, cloud=_bad_field_cloud(frames[3], bad_stamp, BAD_CLOUDS[case]))
+    good = client.send(frames[3])
+    assert client.wait_reply(good) is not None, node.stderr[-2000:]
+    assert client.wait_diagnostics(base, {"bad_cloud": 1})["bad_cloud"] == 1
+    assert bad_stamp not in client.replies
+    assert node.proc.poll() is None
+    assert "skipping malformed cloud" in node.stderr
+
+
+def test_big_endian_cloud_is_decoded(marker_node, frames):
+    node, client = marker_node
+    stamp = client.next_stamp()
+    client.send(frames[3], stamp, cloud=_bad_field_cloud(frames[3], stamp, _big_endian))
+    msg = client.wait_reply(stamp)
+    assert msg is not None, node.stderr[-2000:]
+    check_completion(msg, frames[3], stamp, {0})
+
+
+def test_nonfinite_points_are_dropped_and_counted(marker_node, frames):
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    pts = frames[3].points.copy()
+    pts[::100, 0] = np.nan
+    pts[5::200, 2] = np.inf
+    n_bad = int((~np.isfinite(pts[:, :3]).all(1)).sum())
+    stamp = client.next_stamp()
+    client.send(frames[3], stamp, cloud=cloud_msg(pts, stamp))
+    msg = client.wait_reply(stamp)
+    assert msg is not None, node.stderr[-2000:]
+    check_completion(msg, frames[3], stamp, {0})
+    assert client.wait_diagnostics(base, {"nonfinite_points": n_bad})["nonfinite_points"] == n_bad
+
+
+def test_empty_cloud_gets_empty_reply(marker_node, frames):
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    stamp = client.next_stamp()
+    client.send(frames[3], stamp, cloud=cloud_msg(np.zeros((0, 4), np.float32), stamp))
+    msg = client.wait_reply(stamp)
+    assert msg is not None and msg.width * msg.height == 0 and msg.header.frame_id == "velodyne"
+    assert client.wait_diagnostics(base, {"skipped_too_few_points": 1})["skipped_too_few_points"] == 1
+    good = client.send(frames[3])
+    assert client.wait_reply(good) is not None
+
+
+def test_frame_without_vehicles_gets_empty_reply_and_empty_marker_array_is_counted(marker_node, frames):
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    stamp = client.send(frames[3], boxes=[])  # only the DELETEALL marker carrying the header
+    msg = client.wait_reply(stamp)
+    assert msg is not None and msg.width == 0
+    client.boxes_pub.publish(MarkerArray())  # no marker, no header: cannot be paired
+    good = client.send(frames[3])
+    assert client.wait_reply(good) is not None
+    assert client.wait_diagnostics(base, {"boxes_without_header": 1})["boxes_without_header"] == 1
+    assert node.proc.poll() is None
+
+
+def test_degenerate_boxes_are_skipped(marker_node, frames):
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    car = frames[3].boxes[0]
+    bad = [Box3D(car.center, (0.0, 1.8, 1.5), car.yaw, "car", 90),
+           Box3D(car.center, (4.0, -1.0, 1.5), car.yaw, "car", 91),
+           Box3D((math.nan, 0.0, 0.0), car.size, car.yaw, "car", 92)]
+    stamp = client.send(frames[3], boxes=frames[3].boxes + bad)
+    msg = client.wait_reply(stamp)
+    assert msg is not None, node.stderr[-2000:]
+    check_completion(msg, frames[3], stamp, {0})
+    assert client.wait_diagnostics(base, {"skipped_degenerate_box": 3})["skipped_degenerate_box"] == 3
+    assert "skipped vehicles" in node.stderr
+
+
+def test_boxes_in_another_frame_are_skipped(marker_node, frames):
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    stamp = client.next_stamp()
+    other = client.boxes_msg([frames[4].boxes[0]], stamp, "map")
+    good = client.boxes_msg(frames[3].boxes, stamp, "velodyne")
+    good.markers.extend(m for m in other.markers if m.action == m.ADD)
+    client.cloud_pub.publish(cloud_msg(frames[3].points, stamp))
+    client.boxes_pub.publish(good)
+    msg = client.wait_reply(stamp)
+    assert msg is not None
+    check_completion(msg, frames[3], stamp, {0})
+    assert client.wait_diagnostics(base, {"boxes_wrong_frame": 1})["boxes_wrong_frame"] == 1
+    assert "not in the cloud's frame" in node.stderr
+
+
+def test_unpaired_boxes_and_clouds_are_dropped_and_counted(marker_node, frames):
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    lonely_boxes = client.next_stamp()
+    client.boxes_pub.publish(client.boxes_msg(frames[3].boxes, lonely_boxes, "velodyne"))
+    lonely_cloud = client.next_stamp()
+    client.cloud_pub.publish(cloud_msg(frames[3].points, lonely_cloud))
+    time.sleep(0.3)
+    good = client.send(frames[3])
+    assert client.wait_reply(good) is not None
+    deltas = client.wait_diagnostics(base, {"drop_boxes_no_cloud": 1, "drop_cloud_no_boxes": 1})
+    assert deltas == {"drop_boxes_no_cloud": 1, "drop_cloud_no_boxes": 1}
+    assert lonely_boxes not in client.replies and lonely_cloud not in client.replies
+    # a stream that stops: the waiting cloud is dropped after sync_max_wait (2 s), not kept for ever
+    base = client.settled_diagnostics()
+    client.cloud_pub.publish(cloud_msg(frames[3].points, client.next_stamp()))
+    deltas = client.wait_diagnostics(base, {"drop_cloud_no_boxes": 1}, timeout=6.0)
+    assert deltas["drop_cloud_no_boxes"] == 1
+    assert client.diag["pending_clouds"] == 0
+
+
+def test_sigterm_exits_cleanly(marker_node):
+    """Last test of the marker node (pytest keeps file order)."""
+    node, _ = marker_node
+    assert node.proc.poll() is None, "the node died during the bad-input tests"
+    assert node.stop(signal.SIGTERM) == 0
+    assert "Traceback" not in node.stderr
+
+
+# -- Detection3DArray, SIGINT, configuration errors ----------------------------------------------------
+
+def test_detection3d_boxes_live_and_sigint(ros_context, frames, tmp_path):
+    interfaces = pytest.importorskip("interfaces", reason="test/interfaces.py (vision_msgs bindings) not there yet")
+    msgs = interfaces.import_vision_msgs()
+    from kitti_frames import detection_array
+
+    env, context = ros_context
+    topics = {"cloud_topic": "d_points", "boxes_topic": "d_boxes", "output_topic": "d_completed_vehicles"}
+    node = NodeProcess(tmp_path, {**BASE_PARAMS, **topics, "boxes_type": "detection3d"},
+                       {**env, **interfaces.vision_msgs_env({**os.environ, **env})}, "detection3d")
+    client = None
+    try:
+        node.wait_ready()
+        assert "vision_msgs/msg/Detection3DArray" in node.stderr
+        client = Client(context, boxes_cls=msgs.Detection3DArray, prefix="d_")
+        client.boxes_msg = detection_array
+        client.warm_up(frames[3])
+        for index, expected in ((4, {0, 1}), (1, {0})):
+            stamp = client.send(frames[index])
+            msg = client.wait_reply(stamp)
+            assert msg is not None, node.stderr[-2000:]
+            check_completion(msg, frames[index], stamp, expected)
+        base = client.settled_diagnostics()
+        stamp = client.send(frames[3], boxes=[])  # an empty Detection3DArray still pairs: empty reply
+        msg = client.wait_reply(stamp)
+        assert msg is not None and msg.width == 0
+        assert client.wait_diagnostics(base, {"frames_published": 1})["frames_published"] == 1
+    finally:
+        if client is not None:
+            client.close()
+        code = node.stop(signal.SIGINT)
+    assert code == 0
+    assert "Traceback" not in node.stderr
+
+
+def test_model_size_mismatch_is_a_clear_error(ros_context, tmp_path):
+    env, _ = ros_context
+    node = NodeProcess(tmp_path, {**BASE_PARAMS, "num_input_points": "999"}, env, "mismatch")
+    code = node.proc.wait(90)
+    node.stop()
+    assert code == 2
+    assert "num_input_points=999 does not match the checkpoint" in node.stderr
+    assert "Traceback" not in node.stderr
