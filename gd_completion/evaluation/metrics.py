@@ -28,7 +28,7 @@ def nearest_sq_distance(query: np.ndarray | Tensor, target: np.ndarray | Tensor,
     """Squared distance from each query point to its nearest target point: (B, Nq) (or (Nq,) unbatched).
 
     The nearest neighbour is found with |q|^2 + |t|^2 - 2 q.t on clouds centred on the target's mean
-    (query chunks of at most `chunk_entries` entries), then its distance is recomputed exactly from
+    (per cloud, query chunks of at most `chunk_entries` entries), then its distance is recomputed exactly from
     the coordinate differences, so coincident points give exactly 0. An empty target gives +inf.
     """
     q, single = _batched(query)
@@ -39,20 +39,20 @@ def nearest_sq_distance(query: np.ndarray | Tensor, target: np.ndarray | Tensor,
     if nt == 0:
         out = torch.full((b, nq), float("inf"))
     else:
+        out = torch.empty(b, nq)
+        step = max(1, chunk_entries // nt)
         with torch.no_grad():
-            centre = t.mean(1, keepdim=True)
-            qc, tc = q - centre, t - centre
-            tt = (tc * tc).sum(-1).unsqueeze(1)  # (B, 1, Nt)
-            tc_t = tc.transpose(1, 2).contiguous()
-            step = max(1, chunk_entries // max(1, b * nt))
-            parts = []
-            for start in range(0, nq, step):
-                qs = qc[:, start:start + step]
-                approx = torch.baddbmm(tt, qs, tc_t, alpha=-2.0)  # |t|^2 - 2 q.t; |q|^2 does not change argmin
-                nearest = approx.argmin(-1)  # (B, chunk)
-                picked = torch.gather(t, 1, nearest.unsqueeze(-1).expand(-1, -1, 3))
-                parts.append((q[:, start:start + step] - picked).pow(2).sum(-1))
-            out = torch.cat(parts, 1) if parts else torch.zeros(b, 0)
+            for i in range(b):  # one cloud at a time: big query chunks, no (B, chunk, Nt) buffers
+                ti = t[i]
+                centre = ti.mean(0, keepdim=True)
+                tc = ti - centre
+                tt = (tc * tc).sum(-1)  # (Nt,)
+                tc_t = tc.t().contiguous()
+                for start in range(0, nq, step):
+                    qs = q[i, start:start + step]
+                    approx = torch.addmm(tt, qs - centre, tc_t, alpha=-2.0)  # |t|^2 - 2 q.t (argmin only)
+                    nearest = approx.argmin(-1)
+                    out[i, start:start + step] = (qs - ti[nearest]).pow(2).sum(-1)
     return out[0] if single else out
 
 

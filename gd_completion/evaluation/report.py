@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections import Counter
 from pathlib import Path
 from typing import Sequence
 
@@ -66,6 +67,8 @@ def pandaset_section(result: PandaSetResult) -> str:
         rows = [[BASELINE_TITLES[n]] + [_mean([getattr(i, attr)[n] for i in items]) for items in groups.values()]
                 for n in BASELINE_NAMES]
         parts.append(f"### {title}\n\n" + markdown_table(headers, rows))
+    classes = Counter(i.label for i in result.items)
+    parts.append("Vehicle-frames per class: " + ", ".join(f"{k} {v}" for k, v in classes.most_common()) + ".")
     parts += [f"Note: {note}" for note in result.notes]
     return "\n\n".join(parts)
 
