@@ -10,6 +10,7 @@ from gd_completion.errors import GDCompletionError
 # Each module exposes register(subparsers) and sets a `func` default on its parser.
 SUBCOMMAND_MODULES = (
     "gd_completion.tools.demo",
+    "gd_completion.tools.train",
     "gd_completion.tools.convert",
     "gd_completion.tools.complete",
     "gd_completion.tools.play",

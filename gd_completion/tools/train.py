@@ -46,7 +46,7 @@ def cached_dataset(path: Path, n_samples: int, seed: int, meshes: Path | None, w
     """Load the data set at `path` if it matches (count, seed), else generate and save it."""
     if path.is_file():
         data = load_dataset(path)
-        meta = data.get("meta", {})
+        meta = data.get("metadata", {})
         if len(data["partial"]) == n_samples and int(meta.get("seed", -1)) == seed:
             logging.info("loaded %d cached samples from %s", n_samples, path)
             return data
