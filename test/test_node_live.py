@@ -5,11 +5,7 @@ from __future__ import annotations
 import math
 import os
 import signal
-import subprocess
-import sys
-import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,42 +15,15 @@ from gd_completion.geometry import Box3D, crop_boxes
 from gd_completion.pipeline import LABEL_IDS
 from gd_completion.pointcloud2 import read_points
 
-from kitti_frames import KittiFrame, cloud_msg, marker_array, read_frame
+from kitti_frames import KittiFrame, cloud_msg, read_frame
 
 rclpy = pytest.importorskip("rclpy")
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.qos import QoSProfile, qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-DOMAIN_ID = 220 + os.getpid() % 12  # 220..231: apart from the 120..219 other ROS tests use
+from ros_live import DOMAIN_ID, Client, NodeProcess, ros_env  # noqa: E402
+
 NUM_OUTPUT = 2048  # points the shipped model generates per vehicle
-# Large PointCloud2 over Fast DDS's default transports loses fragments between processes here; this profile
-# (big shared-memory segment, big UDP buffers) is given to both sides.
-FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <transport_descriptors>
-    <transport_descriptor><transport_id>shm_large</transport_id><type>SHM</type>
-      <segment_size>33554432</segment_size><maxMessageSize>16777216</maxMessageSize></transport_descriptor>
-    <transport_descriptor><transport_id>udp_large</transport_id><type>UDPv4</type>
-      <sendBufferSize>4194304</sendBufferSize><receiveBufferSize>4194304</receiveBufferSize></transport_descriptor>
-  </transport_descriptors>
-  <participant profile_name="gd_completion_tests" is_default_profile="true"><rtps>
-    <userTransports><transport_id>shm_large</transport_id><transport_id>udp_large</transport_id></userTransports>
-    <useBuiltinTransports>false</useBuiltinTransports></rtps></participant>
-</profiles>
-"""
-
-
-def ros_env(tmp: Path) -> dict[str, str]:
-    profile = tmp / "fastdds_large.xml"
-    profile.write_text(FASTDDS_PROFILE)
-    return {"ROS_DOMAIN_ID": str(DOMAIN_ID), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-            "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile), "ROS_LOG_DIR": str(tmp / "roslog"),
-            "RCUTILS_COLORIZED_OUTPUT": "0", "PYTHONUNBUFFERED": "1"}
-
 
 # -- test frames ---------------------------------------------------------------------------------------
 
@@ -72,128 +41,6 @@ def frames(shared_data: Path) -> dict[int, KittiFrame]:
 
 
 # -- node process --------------------------------------------------------------------------------------
-
-class NodeProcess:
-    """`python -m gd_completion.ros.completer_node` with stdout/stderr in files."""
-
-    def __init__(self, tmp: Path, params: dict[str, str], env: dict[str, str], name: str) -> None:
-        self.stderr_path = tmp / f"{name}.stderr"
-        args = [sys.executable, "-m", "gd_completion.ros.completer_node", "--ros-args"]
-        for k, v in params.items():
-            args += ["-p", f"{k}:={v}"]
-        self._err = open(self.stderr_path, "w")
-        full_env = {**os.environ, **env}
-        full_env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in full_env.get("PYTHONPATH", "").split(
-            os.pathsep) if p])
-        self.proc = subprocess.Popen(args, cwd=REPO, env=full_env, stdout=subprocess.DEVNULL, stderr=self._err)
-
-    @property
-    def stderr(self) -> str:
-        return self.stderr_path.read_text()
-
-    def wait_ready(self, timeout: float = 90.0) -> None:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if "completer ready" in self.stderr:
-                return
-            if self.proc.poll() is not None:
-                pytest.fail(f"completer exited with {self.proc.returncode} before ready:\n{self.stderr[-3000:]}")
-            time.sleep(0.1)
-        pytest.fail(f"completer not ready after {timeout} s:\n{self.stderr[-3000:]}")
-
-    def stop(self, sig: int = signal.SIGTERM, timeout: float = 20.0) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        try:
-            return self.proc.wait(timeout)
-        finally:
-            if self.proc.poll() is None:
-                self.proc.kill()
-                self.proc.wait()
-            self._err.close()
-
-
-# -- test-side ROS client ------------------------------------------------------------------------------
-
-class Client:
-    """Publishes clouds and boxes, collects completed clouds by stamp and the node's latest diagnostics."""
-
-    def __init__(self, context, boxes_cls=MarkerArray, prefix: str = "") -> None:
-        self.node = rclpy.create_node(f"completer_test_client{prefix}", context=context)
-        self.cloud_pub = self.node.create_publisher(PointCloud2, f"{prefix}points", qos_profile_sensor_data)
-        self.boxes_pub = self.node.create_publisher(boxes_cls, f"{prefix}boxes", QoSProfile(depth=10))
-        self._cond = threading.Condition()
-        self.replies: dict[int, PointCloud2] = {}
-        self.diag: dict[str, float] = {}
-        self.diag_count = 0
-        self.node.create_subscription(PointCloud2, f"{prefix}completed_vehicles", self._on_reply, QoSProfile(depth=50))
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, QoSProfile(depth=10))
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self._thread.start()
-        self.stamp_ns = 1_000_000_000_000
-
-    def _on_reply(self, msg: PointCloud2) -> None:
-        with self._cond:
-            self.replies[msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec] = msg
-            self._cond.notify_all()
-
-    def _on_diag(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            if status.name.endswith("vehicle completion"):
-                with self._cond:
-                    self.diag = {kv.key: float(kv.value) for kv in status.values}
-                    self.diag_count += 1
-                    self._cond.notify_all()
-
-    def next_stamp(self) -> int:
-        self.stamp_ns += 1_000_000_000
-        return self.stamp_ns
-
-    def wait_reply(self, stamp_ns: int, timeout: float = 20.0) -> PointCloud2 | None:
-        with self._cond:
-            self._cond.wait_for(lambda: stamp_ns in self.replies, timeout)
-            return self.replies.get(stamp_ns)
-
-    def send(self, frame: KittiFrame, stamp_ns: int | None = None, *, boxes: list[Box3D] | None = None,
-             cloud=None, frame_id: str = "velodyne") -> int:
-        stamp_ns = stamp_ns or self.next_stamp()
-        self.cloud_pub.publish(cloud if cloud is not None else cloud_msg(frame.points, stamp_ns, frame_id))
-        self.boxes_pub.publish(self.boxes_msg(frame.boxes if boxes is None else boxes, stamp_ns, frame_id))
-        return stamp_ns
-
-    def boxes_msg(self, boxes, stamp_ns, frame_id):
-        return marker_array(boxes, stamp_ns, frame_id)
-
-    def warm_up(self, frame: KittiFrame, timeout: float = 30.0) -> None:
-        """Send frames until one is answered: both directions of discovery are then complete."""
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if self.wait_reply(self.send(frame), timeout=0.7) is not None:
-                return
-        pytest.fail("the completer never answered a frame")
-
-    def settled_diagnostics(self, timeout: float = 10.0) -> dict[str, float]:
-        """The first diagnostics report that counts every reply received so far."""
-        with self._cond:
-            ok = self._cond.wait_for(lambda: self.diag.get("frames_published", -1) >= len(self.replies), timeout)
-            assert ok, f"diagnostics never caught up with {len(self.replies)} replies: {self.diag}"
-            return dict(self.diag)
-
-    def wait_diagnostics(self, base: dict[str, float], expected: dict[str, int], timeout: float = 10.0
-                         ) -> dict[str, float]:
-        """Wait until every counter in `expected` grew by at least that much over `base`; returns the deltas."""
-        def deltas() -> dict[str, float]:
-            return {k: self.diag.get(k, 0) - base.get(k, 0) for k in expected}
-        with self._cond:
-            self._cond.wait_for(lambda: all(deltas()[k] >= v for k, v in expected.items()), timeout)
-            return deltas()
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-
 
 @pytest.fixture(scope="module")
 def ros_context(tmp_path_factory):

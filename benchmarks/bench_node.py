@@ -1,0 +1,133 @@
+"""Completer node end to end: publish -> completed message latency, backlog and peak RSS on a busy frame.
+
+A real KITTI frame (000003, ~113k points) plus 19 copies of its measured car placed around the sensor gives a
+~125k-point frame with 20 vehicles, published with fresh stamps at --rate Hz for --duration s to the node
+running in a subprocess (shipped weights). Prints latency p50/p95, how many frames were answered and how
+the rest were accounted for (superseded by a newer frame = bounded latency, no backlog), and the node's VmHWM.
+
+    python benchmarks/bench_node.py [--duration 20] [--rate 10] [--vehicles 20] [--num-threads 0]
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "test"))
+sys.path.insert(0, str(REPO))
+
+import rclpy  # noqa: E402
+
+from gd_completion.geometry import Box3D, crop_boxes  # noqa: E402
+from kitti_frames import KittiFrame, cloud_msg, read_frame  # noqa: E402
+from ros_live import DOMAIN_ID, Client, NodeProcess, ros_env  # noqa: E402
+
+KITTI = REPO.parent / "shared" / "data" / "kitti-object-sample" / "training"
+
+
+def busy_frame(n_vehicles: int) -> KittiFrame:
+    """KITTI frame 000003 with its car copied (points and box) to n_vehicles - 1 more places on a ring."""
+    frame = read_frame(KITTI, "000003")
+    car = frame.boxes[0]
+    idx = crop_boxes(frame.points[:, :3], [car], 0.1)[0]
+    local = frame.points[idx].copy()
+    local[:, :3] -= np.asarray(car.center, np.float32)
+    points, boxes = [frame.points], [car]
+    for k in range(1, n_vehicles):
+        angle = 2 * math.pi * k / n_vehicles
+        rot = angle + 0.3 * k
+        c, s = math.cos(rot), math.sin(rot)
+        centre = np.array([18 * math.cos(angle), 18 * math.sin(angle), car.center[2]])
+        moved = local.copy()
+        moved[:, 0] = local[:, 0] * c - local[:, 1] * s + centre[0]
+        moved[:, 1] = local[:, 0] * s + local[:, 1] * c + centre[1]
+        moved[:, 2] = local[:, 2] + centre[2]
+        points.append(moved)
+        boxes.append(Box3D(tuple(centre), car.size, car.yaw + rot, "car", 100 + k))
+    return KittiFrame("busy", np.concatenate(points), boxes)
+
+
+def vm_hwm_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1])
+    return -1
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=20.0)
+    ap.add_argument("--rate", type=float, default=10.0)
+    ap.add_argument("--vehicles", type=int, default=20)
+    ap.add_argument("--num-threads", type=int, default=0, help="node num_threads (0 = torch default)")
+    args = ap.parse_args()
+
+    frame = busy_frame(args.vehicles)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_node_"))
+    env = ros_env(tmp)
+    import os
+    os.environ.update(env)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    node = NodeProcess(tmp, {"num_threads": str(args.num_threads), "boxes_type": "marker"}, env, "bench")
+    try:
+        node.wait_ready()
+        client = Client(context)
+        client.warm_up(frame, timeout=60)
+        time.sleep(3.0)  # let the warm-up frames drain
+        base = client.settled_diagnostics()
+        sent: dict[int, float] = {}
+        period = 1.0 / args.rate
+        start = time.monotonic()
+        for i in range(int(args.duration * args.rate)):
+            target = start + i * period
+            time.sleep(max(0.0, target - time.monotonic()))
+            stamp = client.next_stamp()
+            msg_cloud = cloud_msg(frame.points, stamp)
+            sent[stamp] = time.monotonic()
+            client.send(frame, stamp, cloud=msg_cloud)
+        send_rate = len(sent) / (time.monotonic() - start)
+        last = max(sent)
+        client.wait_reply(last, timeout=30)
+        time.sleep(2.5)
+        diag = client.settled_diagnostics()
+        hwm = vm_hwm_kib(node.proc.pid)
+        answered = [s for s in sent if s in client.reply_times]
+        lat = np.array([client.reply_times[s] - sent[s] for s in answered]) * 1e3
+        thirds = np.array_split(np.array(sorted(answered)), 3)
+        third_p50 = [float(np.median([client.reply_times[s] - sent[s] for s in t]) * 1e3) if len(t) else float("nan")
+                     for t in thirds]
+        delta = {k: int(diag.get(k, 0) - base.get(k, 0)) for k in diag}
+        print(f"frame: {len(frame.points)} points, {len(frame.boxes)} vehicles; sent {len(sent)} frames at "
+              f"{send_rate:.1f} Hz for {args.duration:.0f} s; node num_threads={args.num_threads}")
+        print(f"answered {len(answered)}/{len(sent)} frames ({len(answered) / args.duration:.2f} Hz), "
+              f"vehicles completed {delta['vehicles_completed']}")
+        if len(lat):
+            print(f"end-to-end latency (publish -> completed message received): p50 {np.percentile(lat, 50):.0f} ms, "
+                  f"p95 {np.percentile(lat, 95):.0f} ms, max {lat.max():.0f} ms")
+            print(f"backlog check: p50 latency by thirds of the run {[round(v) for v in third_p50]} ms "
+                  "(flat = no backlog growth)")
+        print(f"node-side latency (frame paired -> published, recent): p50 {diag['latency_p50_ms']:.0f} ms, "
+              f"p95 {diag['latency_p95_ms']:.0f} ms")
+        accounted = delta["frames_published"] + delta["drop_superseded"] + delta["drop_cloud_no_boxes"] \
+            + delta["drop_boxes_no_cloud"] + delta["drop_cloud_overflow"] + int(diag["pending_clouds"])
+        print(f"accounting: published {delta['frames_published']} + superseded {delta['drop_superseded']} + "
+              f"cloud_no_boxes {delta['drop_cloud_no_boxes']} + boxes_no_cloud {delta['drop_boxes_no_cloud']} + "
+              f"overflow {delta['drop_cloud_overflow']} + pending {int(diag['pending_clouds'])} = {accounted} "
+              f"of {len(sent)} sent")
+        print(f"node peak RSS (VmHWM): {hwm / 1024:.0f} MiB")
+        client.close()
+    finally:
+        code = node.stop()
+        rclpy.try_shutdown(context=context)
+    print(f"node exit code after SIGTERM: {code}")
+
+
+if __name__ == "__main__":
+    main()
