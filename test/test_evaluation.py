@@ -251,3 +251,17 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     assert float(pandaset_rows[0].split("|")[2]) > 0.0
     assert (out / "pandaset_vehicles.png").stat().st_size > 10_000
     assert (out / "synthetic_vehicles.png").stat().st_size > 10_000
+
+
+def test_load_heldout_uses_the_synth_dataset(tmp_path):
+    dataset = pytest.importorskip("gd_completion.synth.dataset")
+    from gd_completion.evaluation.synthetic import EVAL_SEED, load_heldout
+
+    partial, complete, source = load_heldout(2)
+    assert partial.shape == (2, 1024, 3) and complete.shape == (2, 2048, 3)
+    assert str(EVAL_SEED) in source
+    training = dataset.build_dataset(2, 0)
+    assert not np.allclose(training["complete"], complete)  # evaluation shapes are not the seed-0 shapes
+    path = dataset.save_dataset(tmp_path / "heldout.npz", dataset.build_dataset(3, EVAL_SEED + 1))
+    p2, c2, source2 = load_heldout(2, path=path)
+    assert p2.shape == (2, 1024, 3) and c2.shape == (2, 2048, 3) and "heldout.npz" in source2

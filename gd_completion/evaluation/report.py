@@ -34,9 +34,9 @@ def synthetic_section(result: SyntheticResult) -> str:
     """Table of CD x1e4, CD(D,G), CD(G,D) and Fidelity x1e3 per baseline on the held-out synthetic set."""
     rows = [[BASELINE_TITLES[n], result.metrics[n]["cd"], result.metrics[n]["cd_dg"], result.metrics[n]["cd_gd"],
              result.metrics[n]["fidelity"]] for n in BASELINE_NAMES]
-    return (f"## Synthetic held-out set\n\n{result.n_samples} pairs from {result.source}; "
-            f"normalised frame (vehicle length = 1), completions of 2048 points "
-            f"(raw input: 1024, mirror: 2048).\n\n"
+    sizes = ", ".join(f"{BASELINE_TITLES[n]} {result.points[n]}" for n in BASELINE_NAMES if n in result.points)
+    return (f"## Synthetic held-out set\n\n{result.n_samples} pairs from {result.source}, ground truth of "
+            f"{result.n_gt} points; normalised frame (vehicle length = 1). Output points: {sizes}.\n\n"
             + markdown_table(["method", "CD x1e4", "CD(D,G) x1e4", "CD(G,D) x1e4", "Fidelity x1e3"], rows)
             + "\n\nCD(D,G): output -> ground truth (fidelity-like); CD(G,D): ground truth -> output (completeness).")
 
@@ -52,7 +52,7 @@ def _mean(values: list[float]) -> float:
     return float(np.mean(values)) if values else float("nan")
 
 
-def pandaset_section(result: PandaSetResult) -> str:
+def pandaset_section(result: PandaSetResult, num_control: int | None = None, num_input: int | None = None) -> str:
     """Coverage error and Fidelity (x1e3) per baseline, overall and by input size."""
     bins = [name for name, *_ in SIZE_BINS]
     groups = {"all": result.items, **{b: [i for i in result.items if i.size_bin == b] for b in bins}}
@@ -69,6 +69,10 @@ def pandaset_section(result: PandaSetResult) -> str:
         parts.append(f"### {title}\n\n" + markdown_table(headers, rows))
     classes = Counter(i.label for i in result.items)
     parts.append("Vehicle-frames per class: " + ", ".join(f"{k} {v}" for k, v in classes.most_common()) + ".")
+    if num_control and num_input:
+        parts.append(f"The networks see each input resampled to {num_input} points (FPS down, cyclic repetition up) "
+                     f"and copy {num_control} FPS control points from it, so inputs of at most {num_control} points "
+                     f"are fully kept (fidelity 0) by both network methods.")
     parts += [f"Note: {note}" for note in result.notes]
     return "\n\n".join(parts)
 

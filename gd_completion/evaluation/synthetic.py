@@ -33,6 +33,8 @@ class SyntheticResult:
     metrics: dict[str, dict[str, float]]
     seconds: float
     examples: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+    points: dict[str, int] = field(default_factory=dict)  # output points per baseline
+    n_gt: int = 0
 
 
 @dataclass
@@ -113,7 +115,8 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
                         "cd_gd": float(gd.mean()) * CD_SCALE,
                         "fidelity": float(fidelity(partial, out).mean()) * FIDELITY_SCALE}
     examples = [(f"synthetic #{i}", partial[i], completion[i], complete[i]) for i in range(min(n_examples, len(partial)))]
-    return SyntheticResult(len(partial), seed, source, result, time.perf_counter() - t0, examples)
+    return SyntheticResult(len(partial), seed, source, result, time.perf_counter() - t0, examples,
+                           {name: int(out.shape[1]) for name, out in outputs.items()}, int(complete.shape[1]))
 
 
 def control_point_ablation(checkpoints: Sequence[str | Path], partial: np.ndarray, complete: np.ndarray, *,

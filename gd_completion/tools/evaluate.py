@@ -12,7 +12,7 @@ from gd_completion.evaluation.pandaset_eval import evaluate_pandaset
 from gd_completion.evaluation.report import (ablation_section, pandaset_section, synthetic_section, write_renders,
                                              write_report)
 from gd_completion.evaluation.synthetic import EVAL_SEED, control_point_ablation, evaluate_synthetic, load_heldout
-from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model, read_checkpoint_metadata
 
 DEFAULT_PANDASET = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "pandaset-002"
 
@@ -25,8 +25,12 @@ def run_evaluation(args: argparse.Namespace) -> int:
     model_path = Path(args.model) if args.model else DEFAULT_WEIGHTS
     model = load_model(model_path)
     out = Path(args.output)
+    meta = {k: v for k, v in read_checkpoint_metadata(model_path).items()
+            if k not in ("format", "format_version", "config") and isinstance(v, (str, int, float))}
     sections = [f"Model: `{model_path}` (N_c = {model.config.num_control}, N_o = {model.config.num_output}, "
-                f"{model.num_parameters():,} parameters)."]
+                f"{model.num_parameters():,} parameters"
+                + "".join(f"; {k}: {v}" for k, v in meta.items()) + ")."]
+    print(sections[0] + "\n", flush=True)
     timings: list[str] = []
 
     def emit(text: str) -> None:
@@ -62,7 +66,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         result = evaluate_pandaset(model, pandaset, max_frames_per_vehicle=args.max_frames_per_vehicle or None,
                                    max_vehicles=args.max_vehicles, max_batch=args.max_batch)
-        emit(pandaset_section(result))
+        emit(pandaset_section(result, num_control=model.config.num_control, num_input=model.config.num_input))
         write_renders(out, "pandaset_vehicles.png", result.examples)
         steps = ", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items())
         timings.append(f"pandaset: {time.perf_counter() - t0:.1f} s ({steps})")
