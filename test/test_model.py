@@ -10,7 +10,7 @@ from gd_completion.errors import CheckpointError
 from gd_completion.model import (GGDConfig, GGDNet, chamfer_l2, chamfer_l2_directional, farthest_point_sample,
                                  load_model, read_checkpoint_metadata, save_checkpoint)
 from gd_completion.model.losses import ggd_loss, laplacian_coordinates, laplacian_loss, smooth_l1
-from gd_completion.model.ops import ball_group, knn_graph
+from gd_completion.model.ops import ball_group, knn_graph, window_knn
 
 TINY = GGDConfig(num_input=64, num_output=96, num_control=32, encoder_h0=(16, 32), encoder_h1=(32,),
                  code_hidden=(32,), code_dim=32, tree_arity=(4, 4, 4), tree_node_dim=8, tree_hidden=(32, 16),
@@ -103,7 +103,31 @@ def test_knn_graph_recomputed_and_correct():
     k1 = model(x).neighbours
     k2 = model(x * torch.tensor([1.0, 3.0, 0.2])).neighbours
     assert not torch.equal(k1, k2)
-    assert torch.equal(k1, knn_graph(model(x).generated, TINY.knn_k))
+    assert torch.equal(k1, knn_graph(model(x).generated, TINY.knn_k, TINY.knn_margin))
+
+
+def test_window_knn_matches_brute_force():
+    g = torch.Generator().manual_seed(0)
+    q = torch.randn(2, 700, 3, generator=g)
+    q = q / q.norm(dim=-1, keepdim=True) * torch.tensor([0.5, 0.22, 0.2])
+    r = q[:, :300] + 0.01
+    d_full = torch.cdist(q, r).pow(2)
+    exp_d, exp_i = d_full.topk(5, -1, largest=False)
+    dist, idx = window_knn(q, r, 5, margin=10.0)          # window covers everything: exact
+    assert torch.allclose(dist, exp_d, atol=1e-5) and torch.equal(idx, exp_i)
+    dist, idx = window_knn(q, r, 5, margin=0.08)           # exact wherever the 5th neighbour is within 0.08
+    ok = exp_d[..., -1] < 0.08 ** 2
+    assert ok.float().mean() > 0.5
+    assert torch.allclose(dist[ok], exp_d[ok], atol=1e-5)
+    # self-excluded kNN graph
+    full = knn_graph(q, 4)
+    win = knn_graph(q, 4, margin=10.0)
+    assert torch.equal(full.sort(-1).values, win.sort(-1).values)
+    assert not (win == torch.arange(700).view(1, -1, 1)).any()
+    # ball query via windows is exact inside the radius
+    has_ball = torch.cdist(q, r).amin(-1) < 0.05 - 1e-4      # rows with a point inside the radius
+    assert has_ball.float().mean() > 0.3
+    assert torch.equal(ball_group(q, r, 0.05, 6, window=True)[has_ball], ball_group(q, r, 0.05, 6)[has_ball])
 
 
 def test_ball_group_radius_padding():

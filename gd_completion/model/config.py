@@ -33,6 +33,8 @@ class GGDConfig:
     local_widths: tuple[int, ...] = (32, 32)     # shared Linear-BN-ReLU on relative coordinates
     # graph deformation (G-ResNet)
     knn_k: int = 8
+    knn_margin: float = 0.08                     # x-window margin of the kNN search (exact within it)
+    window_search: bool = True                   # x-sorted window search (else brute force, O(N^2))
     gcn_width: int = 64
     gcn_blocks: int = 2
     offset_init_gain: float = 0.1                # small initial offsets: P_o starts near P_g

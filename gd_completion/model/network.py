@@ -33,13 +33,16 @@ class LinearBN(nn.Module):
         self.relu = relu
 
     def forward(self, x: Tensor) -> Tensor:
+        shape = x.shape
+        x2 = x.reshape(-1, shape[-1])
         if self.training:
-            shape = x.shape
-            y = self.bn(self.linear(x.reshape(-1, shape[-1]))).view(shape[:-1] + (-1,))
+            y = self.bn(self.linear(x2))
         else:
             scale = self.bn.weight * torch.rsqrt(self.bn.running_var + self.bn.eps)
-            y = F.linear(x, self.linear.weight * scale[:, None], self.bn.bias - self.bn.running_mean * scale)
-        return torch.relu(y) if self.relu else y
+            y = torch.addmm(self.bn.bias - self.bn.running_mean * scale, x2, (self.linear.weight * scale[:, None]).t())
+        if self.relu:
+            y = torch.relu_(y)
+        return y.view(shape[:-1] + (-1,))
 
 
 def _mlp_bn(cin: int, widths: tuple[int, ...]) -> nn.Sequential:
@@ -122,6 +125,7 @@ class LocalFeatures(nn.Module):
     def __init__(self, cfg: GGDConfig) -> None:
         super().__init__()
         self.radius, self.m, self.scales = cfg.radius, cfg.ball_m, cfg.ball_scales
+        self.window = cfg.window_search
         self.mlp = _mlp_bn(3, cfg.local_widths)
         self.out_dim = len(cfg.ball_scales) * cfg.local_widths[-1]
         self.register_buffer("inv_radius", 1.0 / (cfg.radius * torch.tensor(cfg.ball_scales, dtype=torch.float32)),
@@ -129,12 +133,22 @@ class LocalFeatures(nn.Module):
 
     def forward(self, centers: Tensor, partial: Tensor, order: Tensor) -> Tensor:
         b, q, _ = centers.shape
+        if self.training or b * q <= self.EVAL_CHUNK:
+            return self._forward(centers, partial, order)
+        # eval: chunks of query points keep the (chunk, S, M, C) activations in cache (BN is folded, so exact)
+        step = max(1, self.EVAL_CHUNK // b)
+        return torch.cat([self._forward(centers[:, s:s + step], partial, order) for s in range(0, q, step)], 1)
+
+    EVAL_CHUNK = 2048   # queries (all batch elements) per chunk in eval mode
+
+    def _forward(self, centers: Tensor, partial: Tensor, order: Tensor) -> Tensor:
+        b, q, _ = centers.shape
         n = partial.shape[1]
         groups = []
         for s in self.scales:
             size = max(n // (s * s), 1)
             if s == 1 or size >= n:
-                groups.append(ball_group(centers, partial, s * self.radius, self.m))
+                groups.append(ball_group(centers, partial, s * self.radius, self.m, window=self.window))
             else:
                 sub = order[:, :size]
                 local = ball_group(centers, gather_points(partial, sub), s * self.radius, self.m)
@@ -205,14 +219,18 @@ class GGDNet(nn.Module):
             raise ValueError(f"GGDNet needs >= num_control={self.config.num_control} input points, "
                              f"got {partial.shape[1]}")
 
-    def _generate(self, partial: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        self._check(partial)
+    def _order(self, partial: Tensor) -> Tensor:
+        """FPS order long enough for every subset (N/2, N/8, N_c, N/s^2 are all prefixes of it)."""
         n = partial.shape[1]
-        nc = self.config.num_control
-        longest = max([nc] + [n // f for f in self.config.encoder_fractions if f > 1]
+        longest = max([self.config.num_control] + [n // f for f in self.config.encoder_fractions if f > 1]
                       + [n // (s * s) for s in self.config.ball_scales if s > 1])
-        longest = min(longest, n)
-        order = farthest_point_sample(partial, longest)    # nested: N/2, N/8 and N_c sets are prefixes
+        return farthest_point_sample(partial, min(longest, n))
+
+    def _generate(self, partial: Tensor, order: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        if order is None:
+            self._check(partial)
+            order = self._order(partial)
+        nc = self.config.num_control
         code = self.encoder(partial, order)
         coarse = self.decoder(code)
         control_index = order[:, :nc]
@@ -224,11 +242,24 @@ class GGDNet(nn.Module):
         _, coarse, control, _, _ = self._generate(partial)
         return torch.cat([control, coarse], 1)
 
+    # Eval mode runs large batches in chunks of this many clouds: per-cloud tensors then stay in cache,
+    # which is faster on CPU than one huge batch (same results: eval mode has no cross-sample terms).
+    eval_batch_chunk: int = 4
+
     def forward(self, partial: Tensor) -> GGDOutput:
-        code, coarse, control, control_index, order = self._generate(partial)
+        self._check(partial)
+        order = self._order(partial)    # one FPS loop for the whole batch
+        if not self.training and partial.shape[0] > self.eval_batch_chunk > 0:
+            parts = [self._forward(c, o) for c, o in zip(partial.split(self.eval_batch_chunk),
+                                                          order.split(self.eval_batch_chunk))]
+            return GGDOutput(*(torch.cat(ts, 0) for ts in zip(*parts)))
+        return self._forward(partial, order)
+
+    def _forward(self, partial: Tensor, order: Tensor) -> GGDOutput:
+        code, coarse, control, control_index, order = self._generate(partial, order)
         b, nc = control.shape[:2]
         p_g = torch.cat([control, coarse], 1)
-        knn = knn_graph(p_g, self.config.knn_k)             # recomputed every forward
+        knn = knn_graph(p_g, self.config.knn_k, self.config.knn_margin if self.config.window_search else None)
         label = torch.zeros(b, p_g.shape[1], 2, dtype=p_g.dtype, device=p_g.device)
         label[:, :nc, 0] = 1.0
         label[:, nc:, 1] = 1.0

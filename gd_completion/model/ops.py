@@ -16,18 +16,19 @@ _CHUNK_ENTRIES = 1 << 19
 def _fps_dense(xyz: Tensor, n: int) -> Tensor:
     """FPS with a precomputed distance matrix: 3 small ops per step."""
     b, m, _ = xyz.shape
-    sq = (xyz * xyz).sum(-1)
-    d = torch.baddbmm(sq.unsqueeze(2) + sq.unsqueeze(1), xyz, xyz.transpose(1, 2), alpha=-2.0)
+    sq = (xyz * xyz).sum(-1, keepdim=True)
+    one = torch.ones_like(sq)
+    d = torch.bmm(torch.cat([xyz, sq, one], -1), torch.cat([-2.0 * xyz, one, sq], -1).transpose(1, 2))
     d = d.clamp_min_(0.0).view(b * m, m)
     offset = torch.arange(b, device=xyz.device) * m
-    idx = torch.zeros(n, b, dtype=torch.long, device=xyz.device)
     far = torch.zeros(b, dtype=torch.long, device=xyz.device)
+    picks = [far]
     mind = torch.full((b, m), float("inf"), dtype=xyz.dtype, device=xyz.device)
-    for i in range(n):
-        idx[i] = far
+    for i in range(n - 1):
         mind = torch.minimum(mind, d.index_select(0, far + offset))
         far = mind.argmax(1)
-    return idx.t().contiguous()
+        picks.append(far)
+    return torch.stack(picks, 1)
 
 
 def _fps_rows(xyz: Tensor, n: int) -> Tensor:
@@ -35,15 +36,15 @@ def _fps_rows(xyz: Tensor, n: int) -> Tensor:
     b, m, _ = xyz.shape
     flat = xyz.reshape(b * m, 3)
     offset = torch.arange(b, device=xyz.device) * m
-    idx = torch.zeros(n, b, dtype=torch.long, device=xyz.device)
     far = torch.zeros(b, dtype=torch.long, device=xyz.device)
+    picks = [far]
     mind = torch.full((b, m), float("inf"), dtype=xyz.dtype, device=xyz.device)
-    for i in range(n):
-        idx[i] = far
+    for i in range(n - 1):
         c = flat.index_select(0, far + offset).unsqueeze(1)
         mind = torch.minimum(mind, (xyz - c).pow(2).sum(-1))
         far = mind.argmax(1)
-    return idx.t().contiguous()
+        picks.append(far)
+    return torch.stack(picks, 1)
 
 
 with warnings.catch_warnings():
@@ -77,8 +78,11 @@ def farthest_point_sample(xyz: Tensor, n: int) -> Tensor:
 def square_distance(a: Tensor, b: Tensor) -> Tensor:
     """Squared Euclidean distances (B, Na, Nb) between a (B, Na, 3) and b (B, Nb, 3), >= 0."""
     aa = (a * a).sum(-1, keepdim=True)
-    bb = (b * b).sum(-1).unsqueeze(1)
-    return torch.baddbmm(aa + bb, a, b.transpose(1, 2), alpha=-2.0).clamp_min_(0.0)
+    bb = (b * b).sum(-1, keepdim=True)
+    # one GEMM on augmented coordinates [a, |a|^2, 1] . [-2b, 1, |b|^2]: no broadcast copy of the output
+    lhs = torch.cat([a, aa, torch.ones_like(aa)], -1)
+    rhs = torch.cat([-2.0 * b, torch.ones_like(bb), bb], -1)
+    return torch.bmm(lhs, rhs.transpose(1, 2)).clamp_min_(0.0)
 
 
 def flat_index(idx: Tensor, n: int) -> Tensor:
@@ -95,17 +99,18 @@ def gather_points(x: Tensor, idx: Tensor) -> Tensor:
     return out.view(idx.shape + (c,))
 
 
-def knn_graph(points: Tensor, k: int) -> Tensor:
-    """Indices (B, N, k) of the k nearest other points of every point (one-way edges, self excluded)."""
+def knn_graph(points: Tensor, k: int, margin: float | None = None) -> Tensor:
+    """Indices (B, N, k) of the k nearest other points of every point (one-way edges, self excluded).
+
+    With `margin`, the x-sorted window search of `window_knn` (exact for points whose k-th neighbour
+    is within `margin`); without, brute force over all pairs.
+    """
     with torch.no_grad():
-        b, n, _ = points.shape
-        rows = max(16, _CHUNK_ENTRIES // max(b * n, 1))
-        out = []
-        for s in range(0, n, rows):
-            d = square_distance(points[:, s:s + rows], points)
-            d.diagonal(offset=s, dim1=1, dim2=2).fill_(float("inf"))
-            out.append(d.topk(k, dim=-1, largest=False, sorted=False).indices)
-        return torch.cat(out, 1) if len(out) > 1 else out[0]
+        if margin is not None:
+            return window_knn(points, points, k, margin, block=32, exclude_self=True)[1]
+        d = square_distance(points, points)
+        d.diagonal(dim1=1, dim2=2).fill_(float("inf"))
+        return d.topk(k, dim=-1, largest=False, sorted=False).indices
 
 
 def neighbour_mean(x: Tensor, nbr_flat: Tensor, k: int) -> Tensor:
@@ -114,13 +119,18 @@ def neighbour_mean(x: Tensor, nbr_flat: Tensor, k: int) -> Tensor:
     return x.reshape(b * n, c).index_select(0, nbr_flat).view(b, n, k, c).mean(2)
 
 
-def ball_group(centers: Tensor, points: Tensor, radius: float, m: int) -> Tensor:
+def ball_group(centers: Tensor, points: Tensor, radius: float, m: int, window: bool = False) -> Tensor:
     """Indices (B, Q, m) of the m nearest `points` of each center, those farther than `radius` replaced by
-    the nearest one (PointNet++ ball-query padding); computed in row chunks so the distances stay in cache."""
+    the nearest one (PointNet++ ball-query padding). `window`: x-sorted window search with margin
+    `radius` (`window_knn`; exact inside the ball); else brute force in row chunks that stay in cache."""
     with torch.no_grad():
         b, q, _ = centers.shape
         n = points.shape[1]
         mm = min(m, n)
+        if window:
+            dist, nn = window_knn(centers, points, mm, radius, block=32)
+            idx = torch.where(dist > radius * radius, nn[..., :1], nn)
+            return idx if mm == m else torch.cat([idx, idx[..., :1].expand(b, q, m - mm)], -1)
         rows = max(16, _CHUNK_ENTRIES // max(b * n, 1))
         out = []
         for s in range(0, q, rows):
@@ -130,3 +140,60 @@ def ball_group(centers: Tensor, points: Tensor, radius: float, m: int) -> Tensor
         if mm < m:
             idx = torch.cat([idx, idx[..., :1].expand(b, q, m - mm)], -1)
         return idx
+
+
+def window_knn(query: Tensor, ref: Tensor, k: int, margin: float, block: int = 64,
+               exclude_self: bool = False) -> tuple[Tensor, Tensor]:
+    """k nearest `ref` points of every `query` point: (squared distances, indices), each (B, Q, k), sorted.
+
+    Both clouds are sorted along x (the vehicle's long axis); each block of `block` consecutive sorted
+    queries searches only the ref points whose x lies within `margin` of the block's x-range (window
+    width = the largest such count in the batch, computed per call). Exact for every query whose k-th
+    neighbour is within `margin` (so exact for ball queries of radius <= margin); otherwise the
+    neighbours are the nearest inside the window. `exclude_self` (query is ref) drops the point itself.
+    """
+    with torch.no_grad():
+        b, q, _ = query.shape
+        n = ref.shape[1]
+        kk = min(k, n - 1 if exclude_self else n)
+        if q * n <= 4 * block * block or n <= 2 * block:   # tiny clouds: brute force
+            d = square_distance(query, ref)
+            if exclude_self:
+                d.diagonal(dim1=1, dim2=2).fill_(float("inf"))
+            return d.topk(kk, dim=-1, largest=False, sorted=True)
+        rx, rperm = ref[..., 0].sort(dim=1)
+        if exclude_self:
+            qx, qperm = rx, rperm
+        else:
+            qx, qperm = query[..., 0].sort(dim=1)
+        nb = -(-q // block)
+        pad = nb * block - q
+        if pad:
+            qperm = torch.cat([qperm, qperm[:, -1:].expand(b, pad)], 1)
+            qx = torch.cat([qx, qx[:, -1:].expand(b, pad)], 1)
+        qs = gather_points(query, qperm)                                   # (B, nb*block, 3) sorted by x
+        rs = gather_points(ref, rperm)
+        lo = torch.searchsorted(rx, (qx[:, ::block] - margin).contiguous())
+        hi = torch.searchsorted(rx, (qx[:, block - 1::block] + margin).contiguous(), right=True)
+        w = int(min(max(int((hi - lo).max()), kk + (1 if exclude_self else 0)), n))
+        start = lo.clamp(max=n - w)                                        # (B, nb)
+        cand = start.unsqueeze(-1) + torch.arange(w, device=ref.device)    # (B, nb, w) sorted-ref positions
+        cpts = gather_points(rs, cand).view(b * nb, w, 3)
+        d = square_distance(qs.view(b * nb, block, 3), cpts)               # (B*nb, block, w)
+        # only [lo, hi) counts: the result of a cloud must not depend on the other clouds of the batch
+        outside = (cand < lo.unsqueeze(-1)) | (cand >= hi.unsqueeze(-1))
+        d.masked_fill_(outside.view(b * nb, 1, w), float("inf"))
+        if exclude_self:
+            col = torch.arange(nb * block, device=ref.device).clamp(max=q - 1).view(1, nb, block) - start.unsqueeze(-1)
+            d.view(-1, w).scatter_(1, col.reshape(-1, 1), float("inf"))
+        dist, j = d.topk(kk, dim=-1, largest=False, sorted=True)          # (B*nb, block, kk)
+        pos = torch.gather(cand.view(b * nb, 1, w).expand(-1, block, -1), 2, j).view(b, nb * block, kk)
+        # fewer than k candidates in the window: fall back to the ref point nearest in x to the block
+        fallback = lo.clamp(max=n - 1).view(b, nb, 1, 1).expand(b, nb, block, kk).reshape(b, nb * block, kk)
+        pos = torch.where(torch.isinf(dist).view(b, nb * block, kk), fallback, pos)
+        idx = torch.gather(rperm, 1, pos.view(b, -1)).view(b, nb * block, kk)
+        dist = dist.view(b, nb * block, kk)
+        # undo the query sort (padding rows are duplicates of the last query and are dropped)
+        inv = torch.empty(b, q, dtype=torch.long, device=ref.device)
+        inv.scatter_(1, qperm[:, :q], torch.arange(q, device=ref.device).expand(b, q))
+        return gather_points(dist, inv), gather_points(idx, inv)
