@@ -125,12 +125,18 @@ def test_slow_model_newest_frame_wins(marker_node, frames):
     base = client.settled_diagnostics()
     stamps = [client.send(frames[4]) for _ in range(6)]
     assert client.wait_reply(stamps[-1]) is not None
-    deltas = client.wait_diagnostics(base, {"frames_published": 1, "drop_superseded": 1})
-    answered = sum(s in client.replies for s in stamps)
-    assert deltas["drop_superseded"] >= 1
-    time.sleep(0.5)
-    deltas = client.wait_diagnostics(base, {"frames_published": answered, "drop_superseded": 6 - answered})
-    assert deltas["frames_published"] + deltas["drop_superseded"] == 6  # every frame answered or counted
+    assert client.wait_diagnostics(base, {"drop_superseded": 1})["drop_superseded"] >= 1
+    # every frame is answered or counted: superseded in the size-1 slot, or (a cloud lost by best-effort
+    # transport or the reader's KEEP_LAST history) its boxes dropped as boxes_no_cloud
+    keys = ("frames_published", "drop_superseded", "drop_boxes_no_cloud", "drop_cloud_no_boxes")
+    end = time.monotonic() + 10.0
+    while time.monotonic() < end:
+        deltas = {k: client.diag.get(k, 0) - base.get(k, 0) for k in keys}
+        if sum(deltas.values()) >= 6:
+            break
+        time.sleep(0.1)
+    assert sum(deltas.values()) == 6, deltas
+    assert deltas["frames_published"] == sum(s in client.replies for s in stamps) < 6
 
 
 # -- tests: bad input ----------------------------------------------------------------------------------
