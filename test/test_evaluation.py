@@ -265,3 +265,20 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     path = dataset.save_dataset(tmp_path / "heldout.npz", dataset.build_dataset(3, EVAL_SEED + 1))
     p2, c2, source2 = load_heldout(2, path=path)
     assert p2.shape == (2, 1024, 3) and c2.shape == (2, 2048, 3) and "heldout.npz" in source2
+
+
+def test_evaluate_command_skips_missing_pandaset(tmp_path, capsys):
+    import argparse
+
+    from gd_completion.tools import evaluate
+
+    model_path = save_checkpoint(tmp_path / "tiny.pt", GGDNet(TINY), note="test model")
+    parser = argparse.ArgumentParser()
+    evaluate.register(parser.add_subparsers())
+    args = parser.parse_args(["evaluate", "--model", str(model_path), "--output", str(tmp_path / "out"),
+                              "--synthetic-samples", "0", "--pandaset", str(tmp_path / "absent")])
+    assert args.func(args) == 0
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert f"Skipped: {tmp_path / 'absent'} not found" in text
+    assert "note: test model" in text and "N_c = 32" in text
+    assert "## Synthetic" not in text and not list((tmp_path / "out").glob("*.png"))

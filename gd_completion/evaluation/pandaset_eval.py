@@ -1,7 +1,6 @@
 """Real-data evaluation on PandaSet: single-frame completions of parked vehicles vs their multi-frame aggregate."""
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -74,12 +73,11 @@ class VehicleTrack:
 def stationary_vehicles(sequence: PandaSetSequence, sensor: int = PANDAR64) -> dict[str, str]:
     """uuid -> PandaSet class of every track marked stationary with a vehicle class (sensor `sensor` or -1)."""
     found: dict[str, str] = {}
-    for path in sorted((sequence.root / "cuboids").glob("*.json")):
-        try:
-            records = json.loads(path.read_text())
-        except (OSError, ValueError) as error:
-            raise DataFormatError(f"{path}: cannot read cuboids: {error}") from error
-        for record in records:
+    indices = sorted(int(p.stem) for p in (sequence.root / "cuboids").glob("*.json") if p.stem.isdigit())
+    if not indices:
+        raise DataFormatError(f"{sequence.root / 'cuboids'}: no cuboid files NN.json")
+    for index in indices:
+        for record in sequence.cuboids(index):
             label = str(record.get("label", ""))
             if (record.get("stationary") is True and is_vehicle_class(label)
                     and int(record.get("cuboids.sensor_id", -1)) in (-1, sensor)):

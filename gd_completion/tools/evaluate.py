@@ -83,11 +83,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("evaluate", help="evaluate completion on synthetic and PandaSet data",
                                    description=__doc__)
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
-    parser.add_argument("--output", default="evaluation", help="folder for report.md and PNGs (default ./evaluation)")
+    parser.add_argument("--output", default="evaluation_report",
+                        help="folder for report.md and PNGs (default ./evaluation_report)")
     parser.add_argument("--synthetic-samples", type=int, default=128,
                         help="held-out synthetic pairs (default 128; 0 skips the synthetic part)")
     parser.add_argument("--synthetic-seed", type=int, default=EVAL_SEED,
-                        help=f"seed of the held-out set (default {EVAL_SEED}; training must use lower seeds)")
+                        help=f"seed of the held-out set (default {EVAL_SEED}, reserved for evaluation: never train or "
+                        "validate on it)")
     parser.add_argument("--heldout-meshes", default=None, help="folder of meshes never used in training")
     parser.add_argument("--synthetic-data", default=None, help="prebuilt held-out set (synth load_dataset)")
     parser.add_argument("--ablation-checkpoints", nargs="+", default=None, metavar="PT",
