@@ -78,7 +78,7 @@ def main() -> None:
     node = NodeProcess(tmp, {"num_threads": str(args.num_threads), "boxes_type": "marker"}, env, "bench")
     try:
         node.wait_ready()
-        client = Client(context)
+        client = Client(context, node_name="bench")
         client.warm_up(frame, timeout=60)
         time.sleep(3.0)  # let the warm-up frames drain
         base = client.settled_diagnostics()

@@ -52,7 +52,7 @@ class NodeProcess:
 
     def __init__(self, tmp: Path, params: dict[str, str], env: dict[str, str], name: str) -> None:
         self.stderr_path = tmp / f"{name}.stderr"
-        args = [sys.executable, "-m", "gd_completion.ros.completer_node", "--ros-args"]
+        args = [sys.executable, "-m", "gd_completion.ros.completer_node", "--ros-args", "-r", f"__node:={name}"]
         for k, v in params.items():
             args += ["-p", f"{k}:={v}"]
         self._err = open(self.stderr_path, "w")
@@ -92,10 +92,11 @@ class NodeProcess:
 class Client:
     """Publishes clouds and boxes, collects completed clouds by stamp and the node's latest diagnostics."""
 
-    def __init__(self, context, boxes_cls=MarkerArray, prefix: str = "") -> None:
+    def __init__(self, context, boxes_cls=MarkerArray, prefix: str = "", node_name: str = "completer") -> None:
+        self.status_name = f"/{node_name}: vehicle completion"  # diagnostics of that node only
         self.node = rclpy.create_node(f"completer_test_client{prefix}", context=context)
         self.cloud_pub = self.node.create_publisher(PointCloud2, f"{prefix}points", qos_profile_sensor_data)
-        self.boxes_pub = self.node.create_publisher(boxes_cls, f"{prefix}boxes", QoSProfile(depth=10))
+        self.boxes_pub = self.node.create_publisher(boxes_cls, f"{prefix}detections", QoSProfile(depth=10))
         self._cond = threading.Condition()
         self.replies: dict[int, PointCloud2] = {}
         self.reply_times: dict[int, float] = {}  # time.monotonic() at arrival, by stamp
@@ -118,7 +119,7 @@ class Client:
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
-            if status.name.endswith("vehicle completion"):
+            if status.name == self.status_name:
                 with self._cond:
                     self.diag = {kv.key: float(kv.value) for kv in status.values}
                     self.diag_count += 1

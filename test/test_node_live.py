@@ -66,7 +66,7 @@ def marker_node(ros_context, frames, tmp_path_factory):
     env, context = ros_context
     node = NodeProcess(tmp_path_factory.mktemp("node"), BASE_PARAMS, env, "marker")
     node.wait_ready()
-    client = Client(context)
+    client = Client(context, node_name="marker")
     client.warm_up(frames[3])
     yield node, client
     client.close()
@@ -301,14 +301,14 @@ def test_detection3d_boxes_live_and_sigint(ros_context, frames, tmp_path):
     from kitti_frames import detection_array
 
     env, context = ros_context
-    topics = {"cloud_topic": "d_points", "boxes_topic": "d_boxes", "output_topic": "d_completed_vehicles"}
+    topics = {"cloud_topic": "d_points", "boxes_topic": "d_detections", "output_topic": "d_completed_vehicles"}
     node = NodeProcess(tmp_path, {**BASE_PARAMS, **topics, "boxes_type": "detection3d"},
                        {**env, **interfaces.vision_msgs_env({**os.environ, **env})}, "detection3d")
     client = None
     try:
         node.wait_ready()
         assert "vision_msgs/msg/Detection3DArray" in node.stderr
-        client = Client(context, boxes_cls=msgs.Detection3DArray, prefix="d_")
+        client = Client(context, boxes_cls=msgs.Detection3DArray, prefix="d_", node_name="detection3d")
         client.boxes_msg = detection_array
         client.warm_up(frames[3])
         for index, expected in ((4, {0, 1}), (1, {0})):

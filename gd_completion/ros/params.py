@@ -51,7 +51,7 @@ def _float(lo: float, hi: float) -> dict[str, Any]:
 # name -> (default, description, range keyword arguments of ParameterDescriptor)
 PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "cloud_topic": ("points", "Input sensor_msgs/PointCloud2 topic (sensor-data QoS).", {}),
-    "boxes_topic": ("boxes", "Input 3D boxes topic (vision_msgs/Detection3DArray or visualization_msgs/MarkerArray).", {}),
+    "boxes_topic": ("detections", "Input 3D boxes topic (vision_msgs/Detection3DArray or visualization_msgs/MarkerArray).", {}),
     "output_topic": ("completed_vehicles", "Output PointCloud2: x, y, z, instance_id, label, generated; input header.", {}),
     "boxes_type": ("auto", "Boxes message type: auto (Detection3DArray when vision_msgs is installed, else "
                            "MarkerArray), detection3d or marker.", {}),
