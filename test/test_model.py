@@ -10,7 +10,7 @@ from gd_completion.errors import CheckpointError
 from gd_completion.model import (GGDConfig, GGDNet, chamfer_l2, chamfer_l2_directional, farthest_point_sample,
                                  load_model, read_checkpoint_metadata, save_checkpoint)
 from gd_completion.model.losses import ggd_loss, laplacian_coordinates, laplacian_loss, smooth_l1
-from gd_completion.model.ops import ball_group, knn_graph, window_knn
+from gd_completion.model.ops import ball_group, knn_graph, smallest_k, window_knn
 
 TINY = GGDConfig(num_input=64, num_output=96, num_control=32, encoder_h0=(16, 32), encoder_h1=(32,),
                  code_hidden=(32,), code_dim=32, tree_arity=(4, 4, 4), tree_node_dim=8, tree_hidden=(32, 16),
@@ -104,6 +104,14 @@ def test_knn_graph_recomputed_and_correct():
     k2 = model(x * torch.tensor([1.0, 3.0, 0.2])).neighbours
     assert not torch.equal(k1, k2)
     assert torch.equal(k1, knn_graph(model(x).generated, TINY.knn_k, TINY.knn_margin))
+
+
+def test_smallest_k_exact():
+    d = torch.rand(5, 7, 300)
+    d[0, 0, :10] = 0.5   # ties
+    val, idx = smallest_k(d, 8)
+    exp = d.topk(8, -1, largest=False).values
+    assert torch.equal(val, exp) and torch.equal(d.gather(-1, idx), exp)
 
 
 def test_window_knn_matches_brute_force():

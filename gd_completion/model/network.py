@@ -139,7 +139,7 @@ class LocalFeatures(nn.Module):
         step = max(1, self.EVAL_CHUNK // b)
         return torch.cat([self._forward(centers[:, s:s + step], partial, order) for s in range(0, q, step)], 1)
 
-    EVAL_CHUNK = 2048   # queries (all batch elements) per chunk in eval mode
+    EVAL_CHUNK = 1024   # queries (all batch elements) per chunk in eval mode
 
     def _forward(self, centers: Tensor, partial: Tensor, order: Tensor) -> Tensor:
         b, q, _ = centers.shape

@@ -4,6 +4,7 @@ from __future__ import annotations
 import warnings
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 
@@ -116,7 +117,8 @@ def knn_graph(points: Tensor, k: int, margin: float | None = None) -> Tensor:
 def neighbour_mean(x: Tensor, nbr_flat: Tensor, k: int) -> Tensor:
     """A x for the umbrella adjacency A = adjacency / k; x (B, N, C), nbr_flat from `flat_index(knn, N)`."""
     b, n, c = x.shape
-    return x.reshape(b * n, c).index_select(0, nbr_flat).view(b, n, k, c).mean(2)
+    # embedding_bag(mean) gathers and averages in one pass without the (B, N, k, C) intermediate
+    return F.embedding_bag(nbr_flat.view(b * n, k), x.reshape(b * n, c), mode="mean").view(b, n, c)
 
 
 def ball_group(centers: Tensor, points: Tensor, radius: float, m: int, window: bool = False) -> Tensor:
@@ -140,6 +142,25 @@ def ball_group(centers: Tensor, points: Tensor, radius: float, m: int, window: b
         if mm < m:
             idx = torch.cat([idx, idx[..., :1].expand(b, q, m - mm)], -1)
         return idx
+
+
+def smallest_k(d: Tensor, k: int, group: int = 8) -> tuple[Tensor, Tensor]:
+    """(values, indices) of the k smallest entries of each row of d (..., W), sorted ascending.
+
+    Exact two-stage selection: the k groups of `group` columns with the smallest minima contain the
+    k smallest entries; topk then runs on k*group candidates instead of W (topk is the CPU hot spot).
+    """
+    w = d.shape[-1]
+    if w < 4 * k * group:
+        return d.topk(k, dim=-1, largest=False, sorted=True)
+    pad = (-w) % group
+    if pad:
+        d = F.pad(d, (0, pad), value=float("inf"))
+    mins = d.view(d.shape[:-1] + (-1, group)).amin(-1)
+    blk = mins.topk(k, dim=-1, largest=False, sorted=False).indices
+    cand = (blk.unsqueeze(-1) * group + torch.arange(group, device=d.device)).flatten(-2)
+    val, j = d.gather(-1, cand).topk(k, dim=-1, largest=False, sorted=True)
+    return val, cand.gather(-1, j)
 
 
 def window_knn(query: Tensor, ref: Tensor, k: int, margin: float, block: int = 64,
@@ -186,7 +207,7 @@ def window_knn(query: Tensor, ref: Tensor, k: int, margin: float, block: int = 6
         if exclude_self:
             col = torch.arange(nb * block, device=ref.device).clamp(max=q - 1).view(1, nb, block) - start.unsqueeze(-1)
             d.view(-1, w).scatter_(1, col.reshape(-1, 1), float("inf"))
-        dist, j = d.topk(kk, dim=-1, largest=False, sorted=True)          # (B*nb, block, kk)
+        dist, j = smallest_k(d, kk)                                        # (B*nb, block, kk)
         pos = torch.gather(cand.view(b * nb, 1, w).expand(-1, block, -1), 2, j).view(b, nb * block, kk)
         # fewer than k candidates in the window: fall back to the ref point nearest in x to the block
         fallback = lo.clamp(max=n - 1).view(b, nb, 1, 1).expand(b, nb, block, kk).reshape(b, nb * block, kk)
