@@ -12,8 +12,11 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
+from gd_completion.box_messages import (MARKER_ADD, MARKER_CUBE, detections_to_boxes, markers_to_boxes,
+                                        yaw_from_quaternion)
 from gd_completion.errors import BagError, DataFormatError
 from gd_completion.geometry import Box3D
+from gd_completion.stamp_sync import stamp_to_ns
 
 if TYPE_CHECKING:
     from rosbags.rosbag2 import Reader, Writer
@@ -36,8 +39,6 @@ PANDAR_MSGS = {
     "pandar_msgs/msg/PandarScan": "std_msgs/Header header\npandar_msgs/PandarPacket[] packets\n",
 }
 
-MARKER_CUBE = 1
-MARKER_ADD = 0
 MARKER_DELETEALL = 3
 
 
@@ -189,9 +190,7 @@ def stamp(ns: int) -> Any:
     return _msg("builtin_interfaces/msg/Time")(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
 
 
-def stamp_ns(time_msg: Any) -> int:
-    """Integer nanoseconds of a builtin_interfaces/Time."""
-    return int(time_msg.sec) * 1_000_000_000 + int(time_msg.nanosec)
+stamp_ns = stamp_to_ns  # integer nanoseconds of a builtin_interfaces/Time
 
 
 def header(frame_id: str, ns: int) -> Any:
@@ -220,9 +219,7 @@ def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
     return 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0)
 
 
-def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
-    """Heading (rotation about +z) of a quaternion."""
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+quaternion_yaw = yaw_from_quaternion  # heading (rotation about +z) of a quaternion
 
 
 def _pose(box: Box3D) -> Any:
@@ -325,34 +322,13 @@ def rotation_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
 # --- boxes back from messages ---------------------------------------------------------------------------
 
 def boxes_from_detections(msg: Any) -> list[Box3D]:
-    """Box3D list from a Detection3DArray (label = first hypothesis class_id, id = int(id) or index)."""
-    boxes = []
-    for k, det in enumerate(msg.detections):
-        pose = det.bbox.center
-        label = det.results[0].hypothesis.class_id if len(det.results) else ""
-        try:
-            instance = int(det.id)
-        except (TypeError, ValueError):
-            instance = k
-        boxes.append(Box3D(
-            (pose.position.x, pose.position.y, pose.position.z),
-            (det.bbox.size.x, det.bbox.size.y, det.bbox.size.z),
-            quaternion_yaw(pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w),
-            str(label).lower(), instance))
-    return boxes
+    """Box3D list from a Detection3DArray (see `gd_completion.box_messages.detections_to_boxes`)."""
+    return list(detections_to_boxes(msg).boxes)
 
 
 def boxes_from_markers(msg: Any) -> list[Box3D]:
-    """Box3D list from the ADD CUBE markers of a MarkerArray (label = ns, instance id = id)."""
-    boxes = []
-    for m in msg.markers:
-        if m.type != MARKER_CUBE or m.action != MARKER_ADD:
-            continue
-        o = m.pose.orientation
-        boxes.append(Box3D((m.pose.position.x, m.pose.position.y, m.pose.position.z),
-                           (m.scale.x, m.scale.y, m.scale.z), quaternion_yaw(o.x, o.y, o.z, o.w),
-                           str(m.ns).lower(), int(m.id)))
-    return boxes
+    """Box3D list from the ADD CUBE markers of a MarkerArray (see `gd_completion.box_messages`)."""
+    return list(markers_to_boxes(msg).boxes)
 
 
 def boxes_from_message(msg: Any, msgtype: str) -> list[Box3D]:

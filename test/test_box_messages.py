@@ -9,7 +9,7 @@ from geometry_msgs.msg import Pose, Quaternion
 from visualization_msgs.msg import Marker, MarkerArray
 
 from gd_completion.errors import BoxError
-from gd_completion.ros.box_messages import (
+from gd_completion.box_messages import (
     detections_to_boxes, map_label, markers_to_boxes, parse_class_map, yaw_from_quaternion,
 )
 

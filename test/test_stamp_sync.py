@@ -5,7 +5,7 @@ import threading
 
 import pytest
 
-from gd_completion.ros.stamp_sync import LatestSlot, StampSync, stamp_to_ns
+from gd_completion.stamp_sync import LatestSlot, StampSync, stamp_to_ns
 
 MS = 1_000_000
 

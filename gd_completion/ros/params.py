@@ -8,7 +8,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 
 from gd_completion.errors import BoxError, GDCompletionError
 from gd_completion.pipeline import LABEL_IDS
-from gd_completion.ros.box_messages import parse_class_map
+from gd_completion.box_messages import parse_class_map
 
 BOXES_TYPES = ("auto", "detection3d", "marker")
 

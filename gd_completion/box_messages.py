@@ -7,7 +7,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from gd_completion.errors import BoxError
 from gd_completion.geometry import Box3D
-from gd_completion.ros.stamp_sync import stamp_to_ns
+from gd_completion.stamp_sync import stamp_to_ns
 
 # visualization_msgs/msg/Marker constants (kept here so the pure logic needs no message import).
 MARKER_CUBE = 1
