@@ -22,26 +22,13 @@ from kitti_frames import KittiFrame, cloud_msg, marker_array
 
 REPO = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 220 + os.getpid() % 12  # 220..231: apart from the 120..219 other ROS tests use
-# Large PointCloud2 over Fast DDS's default transports loses fragments between processes here; this profile
-# (big shared-memory segment, big UDP buffers) is given to both sides.
-FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <transport_descriptors>
-    <transport_descriptor><transport_id>shm_large</transport_id><type>SHM</type>
-      <segment_size>33554432</segment_size><maxMessageSize>16777216</maxMessageSize></transport_descriptor>
-    <transport_descriptor><transport_id>udp_large</transport_id><type>UDPv4</type>
-      <sendBufferSize>4194304</sendBufferSize><receiveBufferSize>4194304</receiveBufferSize></transport_descriptor>
-  </transport_descriptors>
-  <participant profile_name="gd_completion_tests" is_default_profile="true"><rtps>
-    <userTransports><transport_id>shm_large</transport_id><transport_id>udp_large</transport_id></userTransports>
-    <useBuiltinTransports>false</useBuiltinTransports></rtps></participant>
-</profiles>
-"""
+# Large PointCloud2 over Fast DDS's default transports loses fragments between processes here; the shipped
+# profile (big shared-memory segment, big UDP buffers) is given to both sides.
+FASTDDS_PROFILE = REPO / "config" / "fastdds_large_messages.xml"
 
 
 def ros_env(tmp: Path) -> dict[str, str]:
-    profile = tmp / "fastdds_large.xml"
-    profile.write_text(FASTDDS_PROFILE)
+    profile = FASTDDS_PROFILE
     return {"ROS_DOMAIN_ID": str(DOMAIN_ID), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
             "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile), "ROS_LOG_DIR": str(tmp / "roslog"),
             "RCUTILS_COLORIZED_OUTPUT": "0", "PYTHONUNBUFFERED": "1"}
