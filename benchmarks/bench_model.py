@@ -47,14 +47,15 @@ def stages(model: GGDNet, b: int, repeats: int) -> None:
         code = model.encoder(x, order)
         coarse = model.decoder(code)
         pg = torch.cat([gather_points(x, order[:, :cfg.num_control]), coarse], 1)
-        knn = knn_graph(pg, cfg.knn_k)
+        margin = cfg.knn_margin if cfg.window_search else None
+        knn = knn_graph(pg, cfg.knn_k, margin)
         loc = model.local(pg, x, order)
         feat = torch.cat([loc, pg, torch.zeros(b, pg.shape[1], 2)], -1)
         parts = {
             "fps": lambda: farthest_point_sample(x, longest),
             "encoder": lambda: model.encoder(x, order),
             "decoder": lambda: model.decoder(code),
-            "knn graph": lambda: knn_graph(pg, cfg.knn_k),
+            "knn graph": lambda: knn_graph(pg, cfg.knn_k, margin),
             "local features": lambda: model.local(pg, x, order),
             "G-ResNet": lambda: model.deform(feat, code, knn),
             "total": lambda: model(x),
@@ -91,7 +92,7 @@ def main() -> None:
         decode = model.decoder.forward
         model.decoder.forward = lambda code: decode(code) * 0.0 + spread.expand(code.shape[0], -1, -1)
     print(f"GGDNet {model.num_parameters():,} parameters, torch {torch.__version__}, {torch.get_num_threads()} threads")
-    for b, reps in ((1, args.repeats), (16, max(3, args.repeats // 3))):
+    for b, reps in ((1, args.repeats), (16, max(3, args.repeats // 3))):  # stages: batch 16 unchunked
         x = _cloud(b, cfg.num_input)
         with torch.inference_mode():
             ts = _times(lambda: model(x), reps)
