@@ -48,6 +48,15 @@ def test_forward_shapes_and_completion_layout():
     assert torch.equal(model(x).completion, out.completion)
 
 
+def test_batched_equals_single_bitwise_in_eval():
+    torch.manual_seed(0)
+    model = GGDNet(TINY).eval()
+    x = _cloud(3, 64, seed=11)
+    both = model(x).completion
+    for i in range(3):
+        assert torch.equal(model(x[i:i + 1]).completion, both[i:i + 1])
+
+
 def test_control_points_are_fps_subset_of_input():
     model = GGDNet(TINY).eval()
     x = _cloud(2, 64, seed=3)
