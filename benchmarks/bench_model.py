@@ -12,6 +12,7 @@ import time
 import torch
 
 from gd_completion.model import GGDConfig, GGDNet, ggd_loss
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.ops import farthest_point_sample, gather_points, knn_graph
 
 
@@ -36,10 +37,16 @@ def _cloud(b: int, n: int) -> torch.Tensor:
     return x * torch.tensor([0.5, 0.22, 0.2])
 
 
+def _vehicles(b: int, n: int) -> torch.Tensor:
+    """`b` simulated lidar scans of procedural vehicles, cropped and normalised as the node does."""
+    from gd_completion.synth.dataset import build_dataset
+    return torch.from_numpy(build_dataset(b, seed=424242, n_input=n)["partial"])
+
+
 def stages(model: GGDNet, b: int, repeats: int) -> None:
     """Per-stage latency (ms per vehicle)."""
     cfg = model.config
-    x = _cloud(b, cfg.num_input)
+    x = _vehicles(b, cfg.num_input)
     with torch.inference_mode():
         n = cfg.num_input
         longest = min(n, max([cfg.num_control, n // 2, n // 8] + [n // (s * s) for s in cfg.ball_scales if s > 1]))
@@ -71,10 +78,10 @@ def main() -> None:
     ap.add_argument("--train", action="store_true", help="also time a training step at batch 16")
     ap.add_argument("--stages", action="store_true", help="per-stage breakdown")
     ap.add_argument("--profile", action="store_true", help="torch.profiler table at batch 16")
+    ap.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
     ap.add_argument("--untrained", action="store_true",
-                    help="keep the untrained decoder (its P_s collapses to a blob: worst case for the x-window "
-                         "neighbour search); default: P_s replaced by points spread over a vehicle-sized "
-                         "surface, as a trained decoder produces")
+                    help="a randomly initialised model (its P_s collapses to a blob: worst case for the x-window "
+                         "neighbour search) instead of the checkpoint")
     ap.add_argument("--cpu-time", action="store_true",
                     help="report process CPU time instead of wall time (with --threads 1: the latency without "
                          "waiting for a core on a shared machine)")
@@ -85,15 +92,14 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    cfg = GGDConfig()
-    model = GGDNet(cfg).eval()
-    if not args.untrained:
-        spread = _cloud(1, cfg.num_coarse) * 1.02
-        decode = model.decoder.forward
-        model.decoder.forward = lambda code: decode(code) * 0.0 + spread.expand(code.shape[0], -1, -1)
+    if args.untrained:
+        model = GGDNet(GGDConfig()).eval()
+    else:
+        model = load_model(args.model or DEFAULT_WEIGHTS)
+    cfg = model.config
     print(f"GGDNet {model.num_parameters():,} parameters, torch {torch.__version__}, {torch.get_num_threads()} threads")
     for b, reps in ((1, args.repeats), (16, max(3, args.repeats // 3))):  # stages: batch 16 unchunked
-        x = _cloud(b, cfg.num_input)
+        x = _vehicles(b, cfg.num_input)
         with torch.inference_mode():
             ts = _times(lambda: model(x), reps)
         print(f"batch {b:2d}: {1000 * min(ts) / b:7.2f} ms/vehicle (min), {1000 * statistics.median(ts) / b:7.2f} (median)")
@@ -101,7 +107,7 @@ def main() -> None:
             stages(model, b, reps)
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
-        x = _cloud(16, cfg.num_input)
+        x = _vehicles(16, cfg.num_input)
         with torch.inference_mode(), profile(activities=[ProfilerActivity.CPU]) as prof:
             model(x)
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15))
@@ -115,7 +121,6 @@ def main() -> None:
             opt.zero_grad()
             loss.backward()
             opt.step()
-        model.decoder.forward = type(model.decoder).forward.__get__(model.decoder)   # real decoder for training
         ts = _times(step, 3, warmup=1)
         print(f"training step, batch 16: {min(ts):.2f} s (min), {statistics.median(ts):.2f} s (median)")
 
