@@ -128,6 +128,19 @@ class Client:
         self.boxes_pub.publish(self.boxes_msg(frame.boxes if boxes is None else boxes, stamp_ns, frame_id))
         return stamp_ns
 
+    def send_until_reply(self, frame: KittiFrame, timeout: float = 60.0, every: float = 5.0) -> PointCloud2 | None:
+        """Send `frame` with fresh stamps until one is answered. The cloud goes out best effort (sensor-data QoS,
+        as lidar drivers publish), so on a loaded machine a 2 MB cloud can be lost in transport: a test of the
+        node's recovery must not hinge on one delivery."""
+        end = time.monotonic() + timeout
+        sent: list[int] = []
+        while time.monotonic() < end:
+            sent.append(self.send(frame))
+            with self._cond:
+                if self._cond.wait_for(lambda: any(s in self.replies for s in sent), min(every, end - time.monotonic())):
+                    return next(self.replies[s] for s in sent if s in self.replies)
+        return None
+
     def boxes_msg(self, boxes, stamp_ns, frame_id):
         return marker_array(boxes, stamp_ns, frame_id)
 
