@@ -254,7 +254,7 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
 
 
 def test_load_heldout_uses_the_synth_dataset(tmp_path):
-    dataset = pytest.importorskip("gd_completion.synth.dataset")
+    from gd_completion.synth import dataset
     from gd_completion.evaluation.synthetic import EVAL_SEED, load_heldout
 
     partial, complete, source = load_heldout(2)

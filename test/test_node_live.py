@@ -292,7 +292,8 @@ def test_sigterm_exits_cleanly(marker_node):
 # -- Detection3DArray, SIGINT, configuration errors ----------------------------------------------------
 
 def test_detection3d_boxes_live_and_sigint(ros_context, frames, tmp_path):
-    interfaces = pytest.importorskip("interfaces", reason="test/interfaces.py (vision_msgs bindings) not there yet")
+    import interfaces
+
     msgs = interfaces.import_vision_msgs()
     from kitti_frames import detection_array
 
