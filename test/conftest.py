@@ -6,6 +6,13 @@ from pathlib import Path
 
 import pytest
 
+REPO = Path(__file__).resolve().parents[1]
+# Fast DDS reads its XML profile once per process, when the first participant is created: every ROS test
+# in this pytest process (and the nodes it starts) must see the large-message profile from the start, or
+# 2 MB clouds published after an earlier test's participant go out over the default transports and get lost.
+os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(REPO / "config" / "fastdds_large_messages.xml"))
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
 SHARED_DATA = Path(os.environ.get("GD_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 
