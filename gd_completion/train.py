@@ -93,13 +93,27 @@ def evaluate(model: GGDNet, partial: torch.Tensor, complete: torch.Tensor, batch
     return {k: CD_SCALE * v / partial.shape[0] for k, v in sums.items()}
 
 
+def warm_start(model: GGDNet, path: str | Path, skip: Sequence[str] = ()) -> list[str]:
+    """Copy into `model` every tensor of checkpoint `path` with the same name and shape, except names
+    starting with a prefix in `skip`; returns the names left at their fresh initialisation."""
+    source = read_checkpoint(path)["state_dict"]
+    target = model.state_dict()
+    fresh = [name for name, t in target.items()
+             if name not in source or source[name].shape != t.shape or any(name.startswith(p) for p in skip)]
+    model.load_state_dict({**target, **{k: source[k] for k in target if k not in fresh}})
+    return fresh
+
+
 def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir: str | Path,
-          settings: TrainSettings | None = None, *, resume: bool = False, **overrides: Any) -> TrainResult:
+          settings: TrainSettings | None = None, *, resume: bool = False, init_from: str | Path | None = None,
+          init_skip: Sequence[str] = (), **overrides: Any) -> TrainResult:
     """Train GGDNet; writes `out_dir/last.pt` (resumable) every epoch and `out_dir/best.pt` (best val P_o CD).
 
     `overrides` set TrainSettings fields (epochs=, batch_size=, lr=, generation_epochs=, lam=, device=,
     seed=, time_budget_s=...). With `resume=True` and an existing last.pt, training continues from it
     (its model config and optimizer state; the epoch count and schedule come from `settings`).
+    Otherwise `init_from` warm-starts the new model from a checkpoint (`warm_start`; e.g. the shipped
+    weights for a control-point ablation whose tree decoder differs), skipping the `init_skip` prefixes.
     """
     settings = settings or TrainSettings()
     for k, v in overrides.items():
@@ -127,6 +141,10 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         history = list(data.get("history", []))
         best = float(data.get("best_cd", math.inf))
         log.info("resuming from %s at epoch %d", last_path, start_epoch)
+    elif init_from is not None:
+        fresh = warm_start(model, init_from, init_skip)
+        log.info("warm start from %s: %d tensors copied, fresh: %s", init_from,
+                 len(model.state_dict()) - len(fresh), ", ".join(fresh) or "none")
     tr_x, tr_y = _pairs(train_data, "training data", config)
     va_x, va_y = _pairs(val_data, "validation data", config)
     model.to(device).train()

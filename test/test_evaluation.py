@@ -44,6 +44,19 @@ def test_fidelity_and_coverage_hand_computed():
     assert float(metrics.chamfer_directional(extra, reference)[0]) > 10
 
 
+def test_completeness_by_region_hand_computed():
+    gt = _pts([0, 0, 0], [1, 0, 0], [0, 3, 0])
+    partial = _pts([0, 0, 0.01], [1, 0.02, 0])          # near the first two GT points only
+    output = _pts([0, 0, 0], [1, 0.1, 0], [0, 1, 0])
+    # observed: (0,0,0) -> 0, (1,0,0) -> 0.01 ; unobserved: (0,3,0) -> (0,1,0): 4
+    seen, unseen, fraction = metrics.completeness_by_region(gt, output, partial, radius=0.05)
+    assert seen == pytest.approx(0.005)
+    assert unseen == pytest.approx(4.0)
+    assert fraction == pytest.approx(2 / 3)
+    seen, unseen, fraction = metrics.completeness_by_region(gt, output, partial, radius=10.0)
+    assert fraction == 1.0 and np.isnan(unseen) and seen == pytest.approx((0 + 0.01 + 4) / 3)
+
+
 def test_metrics_batched_chunked_and_consistent_with_training_loss():
     rng = np.random.default_rng(3)
     a = rng.normal(size=(3, 200, 3)).astype(np.float32)
@@ -142,6 +155,9 @@ def test_evaluate_synthetic_values():
     # Mirroring the seen half of a symmetric shape restores completeness (GT -> output) by a wide margin.
     assert result.metrics["mirror"]["cd_gd"] < result.metrics["input"]["cd_gd"] / 10
     assert result.metrics["ggd"]["fidelity"] > 0.0
+    # The raw input misses only the unobserved half: its observed-region completeness is near 0.
+    assert 0.2 < result.observed_fraction < 0.8
+    assert result.metrics["input"]["cd_gd_observed"] < result.metrics["input"]["cd_gd_unobserved"] / 20
 
 
 def test_reference_sample_is_voxel_uniform():

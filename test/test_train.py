@@ -7,7 +7,8 @@ import torch
 
 from gd_completion.errors import DataFormatError
 from gd_completion.model import load_model, read_checkpoint_metadata
-from gd_completion.train import TrainSettings, train
+from gd_completion.model import GGDConfig, GGDNet
+from gd_completion.train import TrainSettings, train, warm_start
 
 from test_model import TINY
 
@@ -61,3 +62,27 @@ def test_time_budget_and_bad_data(tmp_path):
     bad = (np.zeros((4, 10, 3), np.float32), np.zeros((4, TINY.num_output, 3), np.float32))
     with pytest.raises(DataFormatError, match="training data"):
         train(TINY, bad, _data(4, 1), tmp_path / "bad", _settings())
+
+
+def test_warm_start_copies_matching_tensors_only(tmp_path):
+    res = train(TINY, _data(8, 0), _data(4, 1), tmp_path / "src", _settings(epochs=1))
+    source = load_model(res.last_path).state_dict()
+    # another N_c: the last decoder level has another arity, so its tensors change shape
+    other = GGDConfig(**{**TINY.to_dict(), "num_control": TINY.num_control * 2,
+                         "tree_arity": (*TINY.tree_arity[:-1], (TINY.num_output - 2 * TINY.num_control)
+                                        // int(np.prod(TINY.tree_arity[:-1])))})
+    torch.manual_seed(1)
+    model = GGDNet(other)
+    fresh = warm_start(model, res.last_path, skip=("encoder.h1.0",))
+    state = model.state_dict()
+    assert fresh and all(k.startswith(("decoder.rest", "encoder.h1.0")) for k in fresh)
+    assert any(k.startswith("encoder.h1.0") for k in fresh)
+    for name, value in state.items():
+        if name not in fresh:
+            assert torch.equal(value, source[name]), name
+        elif value.shape == source[name].shape:      # skipped by prefix: still its fresh initialisation
+            assert not torch.equal(value, source[name]), name
+    # and training from the warm start runs
+    warm = train(other, (_data(8, 0)[0], _data(8, 0)[1]), _data(4, 1), tmp_path / "warm", _settings(epochs=1),
+                 init_from=res.last_path)
+    assert warm.epochs_done == 1

@@ -82,3 +82,20 @@ def fidelity(partial: np.ndarray | Tensor, output: np.ndarray | Tensor) -> Tenso
 def coverage_error(reference: np.ndarray | Tensor, output: np.ndarray | Tensor) -> Tensor:
     """Coverage error: mean squared distance from each reference point to its nearest output point (unscaled)."""
     return _mean(nearest_sq_distance(reference, output))
+
+
+# Ground-truth points within this distance of an input point count as observed (normalised frame).
+OBSERVED_RADIUS = 0.05
+
+
+def completeness_by_region(gt: np.ndarray | Tensor, output: np.ndarray | Tensor, partial: np.ndarray | Tensor,
+                           radius: float = OBSERVED_RADIUS) -> tuple[float, float, float]:
+    """CD(G,D) split by region: (observed, unobserved, observed fraction), unscaled.
+
+    A ground-truth point is observed when an input point lies within `radius` of it; each region's
+    value is the mean squared distance from its ground-truth points (pooled over the batch) to the output.
+    """
+    to_output = nearest_sq_distance(gt, output).flatten()
+    seen = (nearest_sq_distance(gt, partial) <= radius * radius).flatten()
+    mean = lambda d: float(d.mean()) if d.numel() else float("nan")  # noqa: E731
+    return mean(to_output[seen]), mean(to_output[~seen]), float(seen.float().mean())

@@ -12,6 +12,7 @@ import numpy as np
 from gd_completion.render import render_vehicles
 
 from .baselines import BASELINE_NAMES, BASELINE_TITLES
+from .metrics import OBSERVED_RADIUS
 from .pandaset_eval import SIZE_BINS, PandaSetResult
 from .synthetic import AblationRow, SyntheticResult
 
@@ -38,7 +39,17 @@ def synthetic_section(result: SyntheticResult) -> str:
     return (f"## Synthetic held-out set\n\n{result.n_samples} pairs from {result.source}, ground truth of "
             f"{result.n_gt} points; normalised frame (vehicle length = 1). Output points: {sizes}.\n\n"
             + markdown_table(["method", "CD x1e4", "CD(D,G) x1e4", "CD(G,D) x1e4", "Fidelity x1e3"], rows)
-            + "\n\nCD(D,G): output -> ground truth (fidelity-like); CD(G,D): ground truth -> output (completeness).")
+            + "\n\nCD(D,G): output -> ground truth (fidelity-like); CD(G,D): ground truth -> output (completeness).\n\n"
+            + region_section(result))
+
+
+def region_section(result: SyntheticResult) -> str:
+    """CD(G,D) x1e4 split into ground truth near the input (observed) and far from it (unobserved)."""
+    rows = [[BASELINE_TITLES[n], result.metrics[n]["cd_gd_observed"], result.metrics[n]["cd_gd_unobserved"]]
+            for n in BASELINE_NAMES]
+    return (f"### Completeness by region\n\nCD(G,D) x1e4 of the ground-truth points within {OBSERVED_RADIUS} of an "
+            f"input point (observed, {100 * result.observed_fraction:.0f} % of them) and of the others (unobserved).\n\n"
+            + markdown_table(["method", "observed x1e4", "unobserved x1e4"], rows))
 
 
 def ablation_section(rows: Sequence[AblationRow], n_samples: int) -> str:

@@ -15,17 +15,18 @@ from gd_completion.model.network import GGDNet
 
 from . import EvaluationError
 from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs
-from .metrics import CD_SCALE, FIDELITY_SCALE, chamfer_directional, fidelity
+from .metrics import CD_SCALE, FIDELITY_SCALE, chamfer_directional, completeness_by_region, fidelity
 
 # Seeds from EVAL_SEED up are reserved for evaluation; training sets must use seeds below it.
 EVAL_SEED = 9_000_000
 _MESH_KEYWORDS = ("mesh_dir", "mesh_folder", "meshes_dir", "mesh_root", "meshes")
-SYNTHETIC_METRICS: tuple[str, ...] = ("cd", "cd_dg", "cd_gd", "fidelity")
+SYNTHETIC_METRICS: tuple[str, ...] = ("cd", "cd_dg", "cd_gd", "fidelity", "cd_gd_observed", "cd_gd_unobserved")
 
 
 @dataclass
 class SyntheticResult:
-    """Mean metrics per baseline (CD, CD(D,G), CD(G,D) x1e4; fidelity x1e3) on `n_samples` held-out pairs."""
+    """Mean metrics per baseline (CD, CD(D,G), CD(G,D) x1e4; fidelity x1e3) on `n_samples` held-out pairs;
+    CD(G,D) also split into observed / unobserved ground truth (`completeness_by_region`)."""
 
     n_samples: int
     seed: int | None
@@ -35,6 +36,7 @@ class SyntheticResult:
     examples: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
     points: dict[str, int] = field(default_factory=dict)  # output points per baseline
     n_gt: int = 0
+    observed_fraction: float = float("nan")
 
 
 @dataclass
@@ -108,15 +110,19 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
     generated, completion = network_outputs(model, partial, max_batch=max_batch)
     outputs = {"input": partial, "mirror": mirror_symmetry(partial), "generation": generated, "ggd": completion}
     result: dict[str, dict[str, float]] = {}
+    observed_fraction = float("nan")
     for name in BASELINE_NAMES:
         out = outputs[name]
         dg, gd = chamfer_directional(out, complete)
+        seen, unseen, observed_fraction = completeness_by_region(complete, out, partial)
         result[name] = {"cd": float((dg + gd).mean()) * CD_SCALE, "cd_dg": float(dg.mean()) * CD_SCALE,
                         "cd_gd": float(gd.mean()) * CD_SCALE,
-                        "fidelity": float(fidelity(partial, out).mean()) * FIDELITY_SCALE}
+                        "fidelity": float(fidelity(partial, out).mean()) * FIDELITY_SCALE,
+                        "cd_gd_observed": seen * CD_SCALE, "cd_gd_unobserved": unseen * CD_SCALE}
     examples = [(f"synthetic #{i}", partial[i], completion[i], complete[i]) for i in range(min(n_examples, len(partial)))]
     return SyntheticResult(len(partial), seed, source, result, time.perf_counter() - t0, examples,
-                           {name: int(out.shape[1]) for name, out in outputs.items()}, int(complete.shape[1]))
+                           {name: int(out.shape[1]) for name, out in outputs.items()}, int(complete.shape[1]),
+                           observed_fraction)
 
 
 def control_point_ablation(checkpoints: Sequence[str | Path], partial: np.ndarray, complete: np.ndarray, *,

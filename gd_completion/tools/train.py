@@ -39,6 +39,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--resume", action="store_true", help="continue from OUTPUT/last.pt")
     parser.add_argument("--num-control", type=int, default=None, help="N_c (default: GGDConfig's 256)")
     parser.add_argument("--config", type=Path, default=None, help="JSON file with GGDConfig fields")
+    parser.add_argument("--init-from", type=Path, default=None,
+                        help="warm start: copy every tensor of this checkpoint whose name and shape match")
+    parser.add_argument("--init-skip", action="append", default=[], metavar="PREFIX",
+                        help="with --init-from, keep tensors whose name starts with PREFIX fresh (repeatable)")
     parser.set_defaults(func=run)
 
 
@@ -97,8 +101,10 @@ def run(args: argparse.Namespace) -> int:
                              time_budget_s=args.time_budget)
     (args.output / "settings.json").write_text(json.dumps(
         {"config": config.to_dict(), "settings": dataclasses.asdict(settings), "samples": args.samples,
-         "val_samples": args.val_samples, "meshes": str(args.meshes) if args.meshes else None}, indent=2))
+         "val_samples": args.val_samples, "meshes": str(args.meshes) if args.meshes else None,
+         "init_from": str(args.init_from) if args.init_from else None, "init_skip": args.init_skip}, indent=2))
     result = train(config, (train_data["partial"], train_data["complete"]),
-                   (val_data["partial"], val_data["complete"]), args.output, settings, resume=args.resume)
+                   (val_data["partial"], val_data["complete"]), args.output, settings, resume=args.resume,
+                   init_from=args.init_from, init_skip=tuple(args.init_skip))
     print(f"train: {result.epochs_done} epochs, best checkpoint {result.best_path}, last {result.last_path}")
     return 0
