@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from gd_completion import bagio
 from gd_completion.cli import main
 from gd_completion.datasets.pandaset import PandaSetSequence
+from gd_completion.errors import DataFormatError
 from gd_completion.pointcloud2 import read_points
 
 SEQ = "pandaset-002"
@@ -120,3 +122,94 @@ def test_corrupt_lidar_file(shared_data: Path, tmp_path: Path, capsys: pytest.Ca
     err = capsys.readouterr().err
     assert "01.npz" in err and "error" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]
+
+
+DEVKIT_INDICES = [55, 59, 60]  # a gap (56-58) inside the copied frames
+
+
+def _write_devkit(src: Path, root: Path, indices: list[int]) -> Path:
+    """Official devkit layout of `src` (lidar/NN.pkl.gz, annotations/cuboids/NN.pkl.gz), lidar frames `indices`."""
+    pd = pytest.importorskip("pandas")
+    (root / "lidar").mkdir(parents=True)
+    (root / "annotations" / "cuboids").mkdir(parents=True)
+    (root / "meta").symlink_to(src / "meta")
+    gzip_fast = {"method": "gzip", "compresslevel": 1}  # the default level 9 takes seconds per frame
+    for name in ("poses.json", "timestamps.json"):
+        (root / "lidar" / name).symlink_to(src / "lidar" / name)
+    for index in indices:
+        with np.load(src / "lidar" / f"{index:02d}.npz") as data:
+            xyz = data["xyz"].astype(np.float64)
+            pd.DataFrame({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "i": data["intensity"].astype(np.float64),
+                          "t": data["t"], "d": data["sensor"].astype(np.int64)}).to_pickle(
+                root / "lidar" / f"{index:02d}.pkl.gz", compression=gzip_fast)
+    for path in sorted((src / "cuboids").glob("*.json")):  # every frame: track ids count over the whole sequence
+        pd.DataFrame.from_records(json.loads(path.read_text())).to_pickle(
+            root / "annotations" / "cuboids" / f"{path.stem}.pkl.gz", compression=gzip_fast)
+    return root
+
+
+@pytest.fixture(scope="module")
+def devkit_root(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _write_devkit(shared_data / SEQ, tmp_path_factory.mktemp("devkit") / "002", DEVKIT_INDICES)
+
+
+def test_devkit_layout_reads_like_npz(devkit_root: Path, shared_data: Path) -> None:
+    npz, pkl = PandaSetSequence(shared_data / SEQ), PandaSetSequence(devkit_root)
+    assert (npz.devkit, pkl.devkit) == (False, True)
+    assert pkl.frame_indices() == DEVKIT_INDICES
+    assert pkl.missing_frames() == [i for i in range(80) if i not in DEVKIT_INDICES]
+    assert pkl.track_ids == npz.track_ids and len(pkl.track_ids) > 100
+    for index in DEVKIT_INDICES:
+        records = pkl.cuboids(index)
+        assert records == npz.cuboids(index) and records
+        assert {type(v) for r in records for v in r.values()} <= {str, float, int, bool, type(None)}
+        assert any(r["attributes.object_motion"] is None for r in records)  # NaN in the DataFrame -> None
+        lidar_npz, lidar_pkl = npz.load_lidar(index), pkl.load_lidar(index)
+        for key, array in lidar_npz.items():
+            assert lidar_pkl[key].dtype == array.dtype and lidar_pkl[key].shape == array.shape
+            np.testing.assert_array_equal(lidar_pkl[key], array)
+        for a, b in zip(npz.frame(index, (0, 1)), pkl.frame(index, (0, 1)), strict=True):
+            assert (b.name, b.stamp_ns, b.frame_id) == (a.name, a.stamp_ns, a.frame_id)
+            assert b.xyz.dtype == np.float32 and len(b.xyz) > 10_000
+            np.testing.assert_array_equal(b.xyz, a.xyz)
+            np.testing.assert_array_equal(b.intensity, a.intensity)
+            np.testing.assert_array_equal(b.extra["timestamp"], a.extra["timestamp"])
+            assert (b.boxes, b.source_labels, b.track_ids) == (a.boxes, a.source_labels, a.track_ids)
+            assert b.boxes
+
+
+def test_convert_devkit_layout(devkit_root: Path, shared_data: Path, tmp_path: Path) -> None:
+    def messages(bag: Path) -> list[tuple[str, int, bytes]]:
+        with bagio.open_bag(bag) as reader:
+            return [(conn.topic, stamp, bytes(raw)) for conn, stamp, raw in bagio.iter_raw(reader, reader.connections)]
+
+    n = str(len(DEVKIT_INDICES))
+    assert main(["convert", "pandaset", str(devkit_root), str(tmp_path / "pkl"), "--frames", n]) == 0
+    assert main(["convert", "pandaset", str(shared_data / SEQ), str(tmp_path / "npz"), "--start",
+                 str(DEVKIT_INDICES[0]), "--frames", n]) == 0
+    from_pkl, from_npz = messages(tmp_path / "pkl"), messages(tmp_path / "npz")
+    assert len(from_pkl) == len(from_npz) == 4 * len(DEVKIT_INDICES)  # two clouds, detections, markers
+    assert sorted(from_pkl) == sorted(from_npz)  # byte for byte
+
+
+def test_corrupt_devkit_pickle(devkit_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    root = tmp_path / "seq"
+    (root / "lidar").mkdir(parents=True)
+    (root / "annotations").symlink_to(devkit_root / "annotations")
+    for name in ("poses.json", "timestamps.json", "55.pkl.gz"):
+        (root / "lidar" / name).symlink_to(devkit_root / "lidar" / name)
+    (root / "lidar" / "59.pkl.gz").write_bytes((devkit_root / "lidar" / "59.pkl.gz").read_bytes()[:5000])
+    with pytest.raises(DataFormatError, match=r"59\.pkl\.gz: cannot read pickle"):
+        PandaSetSequence(root).load_lidar(59)
+    out = tmp_path / "bag"
+    assert main(["convert", "pandaset", str(root), str(out), "--start", "55", "--frames", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "59.pkl.gz" in err and "error" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]
+
+
+def test_devkit_layout_without_pandas(devkit_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "pandas", None)  # `import pandas` raises ImportError
+    with pytest.raises(DataFormatError, match="pip install pandas") as info:
+        PandaSetSequence(devkit_root)
+    assert str(devkit_root) in str(info.value)

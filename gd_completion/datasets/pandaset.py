@@ -1,4 +1,4 @@
-"""PandaSet reader (npz/json layout): world-frame points and cuboids moved into the lidar frame by the pose."""
+"""PandaSet reader (npz/json or devkit pickle layout): world-frame points and cuboids moved into the lidar frame."""
 from __future__ import annotations
 
 import json
@@ -20,7 +20,8 @@ BOX_TOPICS = ("/pandar64/detections", "/pandar64/markers")
 # layout, so both sensors are expressed in that frame.
 SENSOR_FRAME = "pandar64"
 
-# Hesai driver (HesaiLidar_General_ROS PointXYZIT) fields; `ring` is absent: the npz layout does not keep it.
+LIDAR_COLUMNS = ("x", "y", "z", "i", "t", "d")  # devkit DataFrame columns: world xyz, intensity, time, sensor id
+# Hesai driver (HesaiLidar_General_ROS PointXYZIT) fields; `ring` is absent: neither layout keeps it.
 HESAI_DTYPE = np.dtype({"names": ["x", "y", "z", "intensity", "timestamp"],
                         "formats": ["<f4", "<f4", "<f4", "<f4", "<f8"],
                         "offsets": [0, 4, 8, 12, 16], "itemsize": 24})
@@ -44,6 +45,35 @@ def _load_json(path: Path) -> Any:
         raise DataFormatError(f"{path}: cannot read JSON: {error}") from error
 
 
+def _import_pandas(root: Path) -> Any:
+    try:
+        import pandas
+    except ImportError:
+        raise DataFormatError(f"{root}: this folder has the PandaSet devkit layout (*.pkl.gz), which needs pandas: "
+                              "pip install pandas") from None
+    return pandas
+
+
+def _load_pickle(pandas: Any, path: Path) -> Any:
+    """A gzip-compressed pickled DataFrame (devkit layout)."""
+    try:
+        frame = pandas.read_pickle(path, compression="gzip")
+    except FileNotFoundError:
+        raise DataFormatError(f"{path}: file missing") from None
+    except Exception as error:  # gzip, pickle or pandas errors of a corrupt file
+        raise DataFormatError(f"{path}: cannot read pickle: {error}") from error
+    if not isinstance(frame, pandas.DataFrame):
+        raise DataFormatError(f"{path}: expected a pandas DataFrame, got {type(frame).__name__}")
+    return frame
+
+
+def _plain(pandas: Any, value: Any) -> Any:
+    """numpy/pandas scalar -> Python scalar; NaN/NA (a missing attribute) -> None, as in the JSON layout."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    return None if pandas.api.types.is_scalar(value) and pandas.isna(value) else value
+
+
 def world_box_to_sensor(record: dict, rotation: np.ndarray, translation: np.ndarray, instance_id: int) -> Box3D:
     """PandaSet cuboid (world; dimensions.y = length, heading = yaw + pi/2) -> Box3D in the sensor frame.
 
@@ -62,7 +92,14 @@ def world_box_to_sensor(record: dict, rotation: np.ndarray, translation: np.ndar
 
 
 class PandaSetSequence:
-    """One sequence folder: lidar/NN.npz, lidar/poses.json, lidar/timestamps.json, cuboids/NN.json."""
+    """One sequence folder, in either layout (detected per folder from the lidar files):
+
+    - npz/json: lidar/NN.npz, lidar/poses.json, lidar/timestamps.json, cuboids/NN.json;
+    - official devkit: lidar/NN.pkl.gz (DataFrames x, y, z, i, t, d), lidar/poses.json, lidar/timestamps.json,
+      annotations/cuboids/NN.pkl.gz (one row per cuboid, same columns as the JSON records); needs pandas.
+
+    Unpickling runs code from the file: give only trusted dataset folders in the devkit layout.
+    """
 
     def __init__(self, root: str | Path) -> None:
         self.root = Path(root)
@@ -75,6 +112,11 @@ class PandaSetSequence:
             raise DataFormatError(f"{self.lidar_dir}: poses.json and timestamps.json must be lists")
         if len(self.poses) != len(self.timestamps):
             raise DataFormatError(f"{self.lidar_dir}: {len(self.poses)} poses but {len(self.timestamps)} timestamps")
+        self.devkit = not any(self.lidar_dir.glob("*.npz")) and any(self.lidar_dir.glob("*.pkl.gz"))
+        self._pandas = _import_pandas(self.root) if self.devkit else None
+        self.lidar_suffix = ".pkl.gz" if self.devkit else ".npz"
+        self.cuboid_dir = self.root / "annotations" / "cuboids" if self.devkit else self.root / "cuboids"
+        self.cuboid_suffix = ".pkl.gz" if self.devkit else ".json"
 
     def frame_count(self) -> int:
         """Frames listed in timestamps.json."""
@@ -82,7 +124,7 @@ class PandaSetSequence:
 
     def frame_indices(self) -> list[int]:
         """Frames that have a lidar file."""
-        return [i for i in range(self.frame_count()) if (self.lidar_dir / f"{i:02d}.npz").is_file()]
+        return [i for i in range(self.frame_count()) if (self.lidar_dir / f"{i:02d}{self.lidar_suffix}").is_file()]
 
     def missing_frames(self) -> list[int]:
         """Frames listed in timestamps.json without a lidar file."""
@@ -111,24 +153,51 @@ class PandaSetSequence:
         return out
 
     def cuboids(self, index: int) -> list[dict]:
-        """Raw cuboid records of frame `index` (world frame)."""
-        records = _load_json(self.root / "cuboids" / f"{index:02d}.json")
-        if not isinstance(records, list):
-            raise DataFormatError(f"{self.root / 'cuboids' / f'{index:02d}.json'}: expected a list of cuboids")
+        """Raw cuboid records of frame `index` (world frame), plain dicts of Python scalars in both layouts."""
+        return self._load_cuboids(self.cuboid_dir / f"{index:02d}{self.cuboid_suffix}")
+
+    def _load_cuboids(self, path: Path) -> list[dict]:
+        if self.devkit:
+            records = [{str(k): _plain(self._pandas, v) for k, v in record.items()}
+                       for record in _load_pickle(self._pandas, path).to_dict("records")]
+        else:
+            records = _load_json(path)
+        if not isinstance(records, list) or not all(isinstance(r, dict) for r in records):
+            raise DataFormatError(f"{path}: expected a list of cuboids")
         return records
 
     @cached_property
     def track_ids(self) -> dict[str, int]:
         """uuid -> stable integer id (order of first appearance over the sequence, from 1)."""
         ids: dict[str, int] = {}
-        for path in sorted((self.root / "cuboids").glob("*.json")):
-            for record in _load_json(path):
+        for path in sorted(self.cuboid_dir.glob(f"*{self.cuboid_suffix}")):
+            for record in self._load_cuboids(path):
                 ids.setdefault(str(record.get("uuid")), len(ids) + 1)
         return ids
 
     def load_lidar(self, index: int) -> dict[str, np.ndarray]:
-        """The npz arrays of frame `index` (xyz, intensity, t, sensor), checked."""
-        path = self.lidar_dir / f"{index:02d}.npz"
+        """Frame `index` as checked arrays: xyz float32 (N,3) world, intensity float32, t float64, sensor uint8."""
+        path = self.lidar_dir / f"{index:02d}{self.lidar_suffix}"
+        arrays = self._load_pickle_lidar(path) if self.devkit else self._load_npz_lidar(path)
+        n = len(arrays["xyz"])
+        if arrays["xyz"].ndim != 2 or arrays["xyz"].shape[1] != 3 or any(
+                len(arrays[k]) != n for k in ("intensity", "t", "sensor")):
+            raise DataFormatError(f"{path}: arrays xyz/intensity/t/sensor have inconsistent shapes")
+        return arrays
+
+    def _load_pickle_lidar(self, path: Path) -> dict[str, np.ndarray]:
+        table = _load_pickle(self._pandas, path)
+        missing = [c for c in LIDAR_COLUMNS if c not in table.columns]
+        if missing:
+            raise DataFormatError(f"{path}: missing columns {missing} (expected {', '.join(LIDAR_COLUMNS)})")
+        try:
+            return {"xyz": table[["x", "y", "z"]].to_numpy(np.float32), "intensity": table["i"].to_numpy(np.float32),
+                    "t": table["t"].to_numpy(np.float64), "sensor": table["d"].to_numpy(np.uint8)}
+        except (TypeError, ValueError) as error:
+            raise DataFormatError(f"{path}: bad column values: {error}") from error
+
+    @staticmethod
+    def _load_npz_lidar(path: Path) -> dict[str, np.ndarray]:
         try:
             with np.load(path) as data:
                 arrays = {k: data[k] for k in ("xyz", "intensity", "t", "sensor")}
@@ -138,10 +207,6 @@ class PandaSetSequence:
             raise DataFormatError(f"{path}: missing array {error}") from error
         except Exception as error:  # zip/pickle errors of a corrupt npz
             raise DataFormatError(f"{path}: cannot read npz: {error}") from error
-        n = len(arrays["xyz"])
-        if arrays["xyz"].ndim != 2 or arrays["xyz"].shape[1] != 3 or any(
-                len(arrays[k]) != n for k in ("intensity", "t", "sensor")):
-            raise DataFormatError(f"{path}: arrays xyz/intensity/t/sensor have inconsistent shapes")
         return arrays
 
     def boxes(self, index: int, sensor: int = 0) -> tuple[list[Box3D], list[str], list[str]]:

@@ -114,7 +114,7 @@ def convert_kitti(src: Path, out: Path, *, storage: str = "mcap", limit: int | N
 def convert_pandaset(src: Path, out: Path, *, storage: str = "mcap", limit: int | None = None,
                      sensors: Sequence[int] = (0, 1), start: int = 0, overwrite: bool = False,
                      quiet: bool = False) -> dict[str, int]:
-    """PandaSet sequence folder (npz/json layout) -> bag with one cloud topic per sensor plus boxes.
+    """PandaSet sequence folder (npz/json or devkit pickle layout) -> bag with one cloud topic per sensor and boxes.
 
     Frames from `start` on (at most `limit`); frames without a lidar file are skipped with a note.
     """
@@ -174,9 +174,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _common(kitti_parser)
     kitti_parser.add_argument("--sequence", default=None, help="tracking sequence (default: the first)")
     kitti_parser.set_defaults(func=_run_kitti)
-    panda_parser = sub.add_parser("pandaset", help="PandaSet sequence (lidar/*.npz, cuboids/*.json)",
+    panda_parser = sub.add_parser("pandaset", help="PandaSet sequence (lidar/*.npz + cuboids/*.json, or the "
+                                                   "devkit's lidar/*.pkl.gz + annotations/cuboids/*.pkl.gz)",
                                   description="Points and cuboids move from the world frame into the lidar frame "
-                                              "using lidar/poses.json.")
+                                              "using lidar/poses.json. Reads the npz/json layout or the official "
+                                              "devkit layout (gzip-compressed pandas pickles; needs pandas, and "
+                                              "unpickling runs code: convert only trusted folders).")
     _common(panda_parser)
     panda_parser.add_argument("--sensors", default="0,1", help="sensor ids: 0 Pandar64, 1 PandarGT (default 0,1)")
     panda_parser.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
