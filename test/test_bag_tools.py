@@ -111,6 +111,45 @@ def test_failure_mid_write_leaves_no_output(kitti_bag: Path, tmp_path: Path) -> 
     assert list(tmp_path.iterdir()) == []
 
 
+def _all_raw(path: Path) -> list[tuple[str, int, bytes]]:
+    with bagio.open_bag(path) as reader:
+        return [(conn.topic, stamp, bytes(raw)) for conn, stamp, raw in bagio.iter_raw(reader, reader.connections)]
+
+
+def test_complete_workers_match_one_process(kitti_bag: Path, completed_bag: Path, model_path: str,
+                                            tmp_path: Path) -> None:
+    out = tmp_path / "parallel"
+    summary = complete_bag(kitti_bag, out, model=model_path, workers=2, progress=False)
+    assert summary.frames == 6 and summary.vehicles_completed > 0
+    assert summary.copied_messages == len(_all_raw(kitti_bag))
+    assert _raw(out)[0] == _raw(completed_bag)[0]  # connections: types, definitions, QoS
+    assert _all_raw(out) == _all_raw(completed_bag)  # every message: topic, order, bag timestamp, bytes
+
+
+@pytest.mark.parametrize("case", ["missing", "corrupt"])
+def test_complete_worker_error_leaves_no_output(case: str, kitti_bag: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture) -> None:
+    model = tmp_path / "model.pt"
+    if case == "corrupt":
+        model.write_bytes(b"not a torch checkpoint")
+    out = tmp_path / "out"
+    before = sorted(p.name for p in tmp_path.iterdir())
+    code = main(["complete", str(kitti_bag), str(out), "--model", str(model), "--workers", "2", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"error: checkpoint {model}: " in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no output, no partial bag
+
+
+def test_complete_workers_arguments(kitti_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["complete", str(kitti_bag), str(tmp_path / "out"), "--workers", "-1"])
+    assert exit_info.value.code == 2 and "--workers: invalid worker count -1" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="workers=1"):
+        complete_bag(kitti_bag, tmp_path / "out", completer=object(), workers=2)
+    assert list(tmp_path.iterdir()) == []
+
+
 def _write_bag(path: Path, with_boxes: bool) -> None:
     cloud = np.zeros(10, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     with bagio.atomic_bag_writer(path) as writer:

@@ -2,15 +2,22 @@
 from __future__ import annotations
 
 import argparse
+import multiprocessing
+import os
+import signal
 import sys
 import time
-from collections import Counter
+from collections import Counter, deque
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
+
+import numpy as np
 
 from gd_completion import bagio
-from gd_completion.errors import BagError
+from gd_completion.errors import BagError, GDCompletionError
 from gd_completion.geometry import Box3D
 from gd_completion.pointcloud2 import read_xyz, write_points
 
@@ -127,16 +134,84 @@ class _Progress:
             print(file=sys.stderr)
 
 
+@dataclass
+class _Frame:
+    """One cloud message waiting for its completion: where and how to write it."""
+
+    timestamp: int  # bag timestamp of the input cloud
+    frame_id: str
+    stamp: int  # header stamp (ns) of the input cloud
+    result: Future
+
+
+class _InlineExecutor:
+    """`submit` runs the call at once in this process (workers=1); its errors raise from `submit` itself."""
+
+    @staticmethod
+    def submit(fn: Callable[..., Any], *args: Any) -> Future:
+        future: Future = Future()
+        future.set_result(fn(*args))
+        return future
+
+
+_worker_completer: Any = None
+_worker_error: BaseException | None = None
+
+
+def _init_worker(model: str | None, options: dict[str, Any]) -> None:
+    """Process pool initializer: one completer per worker process; a failure is kept and raised by each task."""
+    global _worker_completer, _worker_error
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle (it shuts the pool down)
+    try:
+        from gd_completion.pipeline import VehicleCompleter
+
+        _worker_completer = VehicleCompleter.from_checkpoint(model or None, **options)
+    except Exception as error:  # noqa: BLE001 - raised in the main process by every _complete_in_worker
+        _worker_error = error
+
+
+def _complete_in_worker(points: np.ndarray, boxes: list[Box3D]) -> Any:
+    if _worker_error is not None:
+        raise _worker_error
+    return _worker_completer.complete_frame(points, boxes)
+
+
+def _write_completion(writer: Any, conn: Any, frame: _Frame, summary: CompletionSummary, bar: _Progress) -> None:
+    """Count one frame's completion in `summary` and write it with the cloud's bag timestamp and header."""
+    from gd_completion.pipeline import completion_to_structured
+
+    result = frame.result.result()
+    summary.vehicles_completed += int(result.stats.completed)
+    summary.skipped.update(result.stats.skipped)
+    summary.ignored_boxes += int(getattr(result.stats, "ignored_labels", 0))
+    msg = bagio.pointcloud2_msg(write_points(completion_to_structured(result)), frame.frame_id, frame.stamp)
+    writer.write(conn, frame.timestamp, bagio.serialize(msg, bagio.POINTCLOUD2))
+    summary.frames += 1
+    bar.update(summary.frames)
+
+
+def _open_pool(workers: int, model: str | None, options: dict[str, Any]) -> ProcessPoolExecutor:
+    """`workers` spawned processes (not forked: torch and its threads), each with its own completer."""
+    options = {**options, "num_threads": options.get("num_threads") or 1}
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_init_worker, initargs=(model, options))
+
+
 def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = None,
                  boxes_topic: str | None = None, output_topic: str | None = None, model: str | None = None,
                  storage: str = "mcap", completer: Any = None, overwrite: bool = False,
-                 progress: bool = True, **completer_options: Any) -> CompletionSummary:
+                 progress: bool = True, workers: int = 1, **completer_options: Any) -> CompletionSummary:
     """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message.
 
     `completer_options` go to `VehicleCompleter.from_checkpoint` (device, num_threads, min_points, labels, ...).
+    `workers` > 1 completes frames in that many spawned processes, each with its own completer and
+    `num_threads` torch threads (default 1); the output bag is the same as with `workers=1`, message for
+    message and in the same write order. An injected `completer` works only with `workers=1`.
     """
-    from gd_completion.pipeline import completion_to_structured
-
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if completer is not None and workers > 1:
+        raise ValueError("an injected completer runs in this process: use workers=1 with completer=")
     summary = CompletionSummary()
     start = time.perf_counter()
     with bagio.open_bag(src) as reader:
@@ -146,44 +221,83 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
         if output_topic in {c.topic for c in reader.connections}:
             raise BagError(f"{src}: output topic {output_topic} exists in the input bag; choose --output-topic")
         boxes = read_boxes(reader, boxes_topic, boxes_type)
-        if completer is None:
+        if workers == 1 and completer is None:
             from gd_completion.pipeline import VehicleCompleter
 
             completer = VehicleCompleter.from_checkpoint(model or None, **completer_options)
+        max_in_flight = 2 * workers  # frames submitted and not yet written: memory stays flat on long bags
         total = sum(c.msgcount for c in reader.connections if c.topic == cloud_topic)
         bar = _Progress(total, progress)
-        with bagio.atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer:
-            conns = {}
-            for conn in reader.connections:
-                conns[conn.id] = copy_connection(writer, conn, src)
-            out_conn = bagio.add_connection(writer, output_topic, bagio.POINTCLOUD2)
-            for conn, timestamp, raw in bagio.iter_raw(reader, reader.connections):
-                writer.write(conns[conn.id], timestamp, raw)
-                summary.copied_messages += 1
-                if conn.topic != cloud_topic:
-                    continue
-                cloud = bagio.deserialize(raw, bagio.POINTCLOUD2, f"{src} {cloud_topic}")
-                stamp = bagio.stamp_ns(cloud.header.stamp)
-                frame_boxes: list[Box3D] = []
-                if stamp not in boxes:
-                    summary.frames_without_boxes += 1
-                else:
-                    box_frame, frame_boxes = boxes[stamp]
-                    if box_frame and box_frame != cloud.header.frame_id:
-                        summary.skipped["boxes_in_other_frame"] += len(frame_boxes)
-                        frame_boxes = []
-                result = completer.complete_frame(read_xyz(cloud), frame_boxes)
-                summary.vehicles_completed += int(result.stats.completed)
-                summary.skipped.update(result.stats.skipped)
-                summary.ignored_boxes += int(getattr(result.stats, "ignored_labels", 0))
-                msg = bagio.pointcloud2_msg(write_points(completion_to_structured(result)),
-                                            cloud.header.frame_id, stamp)
-                writer.write(out_conn, timestamp, bagio.serialize(msg, bagio.POINTCLOUD2))
-                summary.frames += 1
-                bar.update(summary.frames)
-        bar.close()
+        pool: ProcessPoolExecutor | None = None
+        try:
+            if workers > 1:
+                pool = _open_pool(workers, model, completer_options)
+                executor: Any = pool
+                complete_frame: Callable[..., Any] = _complete_in_worker
+            else:
+                executor, complete_frame = _InlineExecutor(), completer.complete_frame
+            with bagio.atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer:
+                conns = {}
+                for conn in reader.connections:
+                    conns[conn.id] = copy_connection(writer, conn, src)
+                out_conn = bagio.add_connection(writer, output_topic, bagio.POINTCLOUD2)
+                # Writes in input order; a completion goes right after its cloud, as soon as it is done.
+                queue: deque[_Frame | tuple[Any, int, bytes]] = deque()
+                in_flight = 0
+
+                def drain(limit: int) -> None:
+                    """Write the queue's head while it is ready; wait while more than `limit` frames are pending."""
+                    nonlocal in_flight
+                    while queue:
+                        head = queue[0]
+                        if isinstance(head, _Frame):
+                            if in_flight <= limit and not head.result.done():
+                                return
+                            _write_completion(writer, out_conn, head, summary, bar)
+                            in_flight -= 1
+                        else:
+                            writer.write(*head)
+                            summary.copied_messages += 1
+                        queue.popleft()
+
+                for conn, timestamp, raw in bagio.iter_raw(reader, reader.connections):
+                    queue.append((conns[conn.id], timestamp, raw))
+                    if conn.topic == cloud_topic:
+                        cloud = bagio.deserialize(raw, bagio.POINTCLOUD2, f"{src} {cloud_topic}")
+                        stamp = bagio.stamp_ns(cloud.header.stamp)
+                        frame_boxes: list[Box3D] = []
+                        if stamp not in boxes:
+                            summary.frames_without_boxes += 1
+                        else:
+                            box_frame, frame_boxes = boxes[stamp]
+                            if box_frame and box_frame != cloud.header.frame_id:
+                                summary.skipped["boxes_in_other_frame"] += len(frame_boxes)
+                                frame_boxes = []
+                        future = executor.submit(complete_frame, read_xyz(cloud), frame_boxes)
+                        queue.append(_Frame(timestamp, cloud.header.frame_id, stamp, future))
+                        in_flight += 1
+                    drain(max_in_flight - 1)
+                drain(-1)
+        except BrokenProcessPool as error:
+            raise GDCompletionError(f"{src}: a completion worker process died ({error}); no output written "
+                                    "(out of memory? try fewer --workers)") from error
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
+            bar.close()
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def _workers(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid worker count {text!r}: expected an integer >= 0") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"invalid worker count {value}: expected an integer >= 0 "
+                                         "(0 = one per CPU core)")
+    return value
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -194,9 +308,10 @@ def _run(args: argparse.Namespace) -> int:
         options["min_points"] = args.min_points
     if args.labels:
         options["labels"] = [label.strip().lower() for label in args.labels.split(",") if label.strip()]
+    workers = args.workers or os.cpu_count() or 1
     summary = complete_bag(args.input, args.output, cloud_topic=args.cloud_topic, boxes_topic=args.boxes_topic,
                            output_topic=args.output_topic, model=args.model, storage=args.storage,
-                           overwrite=args.overwrite, progress=not args.quiet, **options)
+                           overwrite=args.overwrite, progress=not args.quiet, workers=workers, **options)
     print(f"wrote {args.output}: {summary.text()}")
     return 0
 
@@ -215,7 +330,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
     parser.add_argument("--storage", choices=bagio.STORAGES, default="mcap", help="output storage (default mcap)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="torch CPU threads (of each worker with --workers > 1; default: torch's choice, "
+                        "1 per worker)")
+    parser.add_argument("--workers", type=_workers, default=1, metavar="N",
+                        help="complete frames in N processes with one torch thread each (default 1: in this "
+                        "process); pays off with N <= the number of CPU cores; 0 = one per core. The output "
+                        "bag is the same for every N")
     parser.add_argument("--min-points", type=int, default=None,
                         help="skip vehicles with fewer measured points (default: the pipeline's, 20)")
     parser.add_argument("--labels", default=None, help="comma-separated labels to complete (default car,van,truck)")
