@@ -159,6 +159,9 @@ def test_devkit_layout_reads_like_npz(devkit_root: Path, shared_data: Path) -> N
     assert pkl.frame_indices() == DEVKIT_INDICES
     assert pkl.missing_frames() == [i for i in range(80) if i not in DEVKIT_INDICES]
     assert pkl.track_ids == npz.track_ids and len(pkl.track_ids) > 100
+    assert pkl.cuboid_indices() == npz.cuboid_indices() == list(range(80))
+    from gd_completion.evaluation.pandaset_eval import stationary_vehicles
+    assert stationary_vehicles(pkl) == stationary_vehicles(npz) and len(stationary_vehicles(npz)) == 56
     for index in DEVKIT_INDICES:
         records = pkl.cuboids(index)
         assert records == npz.cuboids(index) and records

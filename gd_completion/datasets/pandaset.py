@@ -152,6 +152,11 @@ class PandaSetSequence:
         out[:3, :3], out[:3, 3] = rotation, translation
         return out
 
+    def cuboid_indices(self) -> list[int]:
+        """Frames that have a cuboid file."""
+        return sorted(int(p.name[:-len(self.cuboid_suffix)]) for p in self.cuboid_dir.glob(f"*{self.cuboid_suffix}")
+                      if p.name[:-len(self.cuboid_suffix)].isdigit())
+
     def cuboids(self, index: int) -> list[dict]:
         """Raw cuboid records of frame `index` (world frame), plain dicts of Python scalars in both layouts."""
         return self._load_cuboids(self.cuboid_dir / f"{index:02d}{self.cuboid_suffix}")

@@ -73,9 +73,9 @@ class VehicleTrack:
 def stationary_vehicles(sequence: PandaSetSequence, sensor: int = PANDAR64) -> dict[str, str]:
     """uuid -> PandaSet class of every track marked stationary with a vehicle class (sensor `sensor` or -1)."""
     found: dict[str, str] = {}
-    indices = sorted(int(p.stem) for p in (sequence.root / "cuboids").glob("*.json") if p.stem.isdigit())
+    indices = sequence.cuboid_indices()
     if not indices:
-        raise DataFormatError(f"{sequence.root / 'cuboids'}: no cuboid files NN.json")
+        raise DataFormatError(f"{sequence.cuboid_dir}: no cuboid files NN{sequence.cuboid_suffix}")
     for index in indices:
         for record in sequence.cuboids(index):
             label = str(record.get("label", ""))
