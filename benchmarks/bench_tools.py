@@ -1,6 +1,6 @@
 """Offline tool throughput: KITTI and PandaSet conversion (frames/s) and `complete` on a PandaSet bag.
 
-Usage: python benchmarks/bench_tools.py [--complete-frames N] [--model PATH] [--threads N]
+Usage: python benchmarks/bench_tools.py [--complete-frames N] [--model PATH] [--threads N] [--workers N]
 Reads ../shared/data (or $GD_SHARED_DATA); writes only to a temporary folder.
 """
 from __future__ import annotations
@@ -52,10 +52,11 @@ class _CropOnly:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pandaset-frames", type=int, default=20)
-    parser.add_argument("--complete-frames", type=int, default=3)
+    parser.add_argument("--complete-frames", type=int, default=6)
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--min-points", type=int, default=None)
+    parser.add_argument("--workers", type=int, default=2, help="also time `complete --workers N` (default 2)")
     args = parser.parse_args()
     if not SHARED.is_dir():
         print(f"shared data folder {SHARED} not found (set GD_SHARED_DATA)", file=sys.stderr)
@@ -75,14 +76,15 @@ def main() -> int:
         options = {"num_threads": args.threads}
         if args.min_points is not None:
             options["min_points"] = args.min_points
-        summary = complete_bag(tmp / "panda_small", tmp / "panda_done", model=args.model, progress=False,
-                               **options)
-        rate = summary.frames / summary.seconds
-        per_frame = summary.vehicles_completed / max(summary.frames, 1)
-        print(f"complete pandaset: {summary.frames} frames in {summary.seconds:.1f} s = {rate:.2f} frames/s "
-              f"({per_frame:.0f} vehicles completed per frame, {args.threads} thread(s); target >= 5 frames/s "
-              f"{'met' if rate >= 5 else 'NOT met'})")
-        print(f"  {summary.text()}")
+        for workers in sorted({1, args.workers}):
+            summary = complete_bag(tmp / "panda_small", tmp / f"panda_done_{workers}", model=args.model,
+                                   progress=False, workers=workers, **options)
+            rate = summary.frames / summary.seconds
+            per_frame = summary.vehicles_completed / max(summary.frames, 1)
+            print(f"complete pandaset: {summary.frames} frames in {summary.seconds:.1f} s = {rate:.2f} frames/s "
+                  f"({per_frame:.0f} vehicles completed per frame, --workers {workers}, {args.threads} thread(s) "
+                  f"each; target >= 5 frames/s {'met' if rate >= 5 else 'NOT met'})")
+            print(f"  {summary.text()}")
         summary = complete_bag(tmp / "panda_small", tmp / "panda_plumbing", progress=False,
                                completer=_CropOnly(model=args.model, **options))
         print(f"complete pandaset without the network (decode, crop, encode, copy): "
