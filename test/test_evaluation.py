@@ -241,8 +241,10 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     seen = {}
 
     def fake_heldout(n, *, seed, mesh_dir=None, path=None):
+        from gd_completion.evaluation.synthetic import HeldOut
+
         seen.update(n=n, seed=seed)
-        return partial[:n], complete[:n], "test pairs"
+        return HeldOut(partial[:n], complete[:n], "test pairs", complete[:n] + 0.01)
 
     monkeypatch.setattr(evaluate, "load_heldout", fake_heldout)
     parser = argparse.ArgumentParser()
@@ -256,6 +258,8 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     assert seen == {"n": 2, "seed": evaluate.EVAL_SEED}
     text = (out / "report.md").read_text()
     printed = capsys.readouterr().out
+    assert "Metric floor: a second uniform 2048-point sample" in text
+    assert "### Completeness by region" in text
     for heading in ("## Synthetic held-out set", "## Control-point ablation", "## PandaSet 002",
                     "Coverage error x1e3", "Fidelity x1e3", "GGD-Net", "mirror symmetry", "generation only"):
         assert heading in text and heading in printed
@@ -273,14 +277,22 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     from gd_completion.synth import dataset
     from gd_completion.evaluation.synthetic import EVAL_SEED, load_heldout
 
-    partial, complete, source = load_heldout(2)
-    assert partial.shape == (2, 1024, 3) and complete.shape == (2, 2048, 3)
+    partial, complete, source, surface = load_heldout(2)
+    assert partial.shape == (2, 1024, 3) and complete.shape == (2, 2048, 3) and surface.shape == (2, 2048, 3)
     assert str(EVAL_SEED) in source
+    # the second surface sample is another sample of the same shape, not a copy, and leaves the pair unchanged
+    plain = dataset.build_dataset(2, EVAL_SEED)
+    np.testing.assert_array_equal(plain["complete"], complete)
+    np.testing.assert_array_equal(plain["partial"], partial)
+    assert not np.allclose(surface, complete)
+    from gd_completion.evaluation import metrics
+    floor = metrics.chamfer(surface, complete).numpy()
+    assert np.all(floor > 0) and np.all(floor < 1e-3)        # a few 1e-4: the sampling-density floor
     training = dataset.build_dataset(2, 0)
     assert not np.allclose(training["complete"], complete)  # evaluation shapes are not the seed-0 shapes
     path = dataset.save_dataset(tmp_path / "heldout.npz", dataset.build_dataset(3, EVAL_SEED + 1))
-    p2, c2, source2 = load_heldout(2, path=path)
-    assert p2.shape == (2, 1024, 3) and c2.shape == (2, 2048, 3) and "heldout.npz" in source2
+    p2, c2, source2, surface2 = load_heldout(2, path=path)
+    assert p2.shape == (2, 1024, 3) and c2.shape == (2, 2048, 3) and "heldout.npz" in source2 and surface2 is None
 
 
 def test_evaluate_command_skips_missing_pandaset(tmp_path, capsys):

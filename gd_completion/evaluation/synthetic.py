@@ -6,7 +6,7 @@ import inspect
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -37,6 +37,16 @@ class SyntheticResult:
     points: dict[str, int] = field(default_factory=dict)  # output points per baseline
     n_gt: int = 0
     observed_fraction: float = float("nan")
+    floor: dict[str, float] | None = None   # CD of the resampled true surface: what a perfect completion scores
+
+
+class HeldOut(NamedTuple):
+    """Held-out pairs; `surface` is a second uniform sample of each true surface (None when not available)."""
+
+    partial: np.ndarray
+    complete: np.ndarray
+    source: str
+    surface: np.ndarray | None = None
 
 
 @dataclass
@@ -74,17 +84,20 @@ def _pairs(data: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path | None = None,
-                 path: str | Path | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+                 path: str | Path | None = None) -> HeldOut:
     """Held-out pairs from `gd_completion.synth.dataset`: `load_dataset(path)` when `path` is given, else
-    `build_dataset(n_samples, seed, ...)` on a seed reserved for evaluation (and the held-out mesh folder
-    `mesh_dir`, when given). Returns (partial, complete, description); EvaluationError when unavailable."""
+    `build_dataset(n_samples, seed, ..., surface_resample=True)` on a seed reserved for evaluation (and the
+    held-out mesh folder `mesh_dir`, when given). EvaluationError when unavailable."""
     try:
         dataset = importlib.import_module("gd_completion.synth.dataset")
     except ImportError as error:
         raise EvaluationError(f"gd_completion.synth.dataset is not available ({error})") from error
     if path is not None:
-        partial, complete = _pairs(dataset.load_dataset(Path(path)), str(path))
-        return partial[:n_samples], complete[:n_samples], f"{path} (first {min(n_samples, len(partial))})"
+        data = dataset.load_dataset(Path(path))
+        partial, complete = _pairs(data, str(path))
+        surface = data.get("surface_resample") if isinstance(data, dict) else None
+        return HeldOut(partial[:n_samples], complete[:n_samples], f"{path} (first {min(n_samples, len(partial))})",
+                       None if surface is None else np.asarray(surface, np.float32)[:n_samples])
     kwargs: dict[str, Any] = {}
     if mesh_dir is not None:
         mesh_dir = Path(mesh_dir)
@@ -96,14 +109,17 @@ def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path 
             raise EvaluationError(f"gd_completion.synth.dataset.build_dataset takes no mesh folder argument "
                                   f"(looked for {', '.join(_MESH_KEYWORDS)})")
         kwargs[keyword] = mesh_dir
-    partial, complete = _pairs(dataset.build_dataset(n_samples, seed, **kwargs), "build_dataset")
+    data = dataset.build_dataset(n_samples, seed, surface_resample=True, **kwargs)
+    partial, complete = _pairs(data, "build_dataset")
     where = f"build_dataset(seed={seed}" + (f", meshes {mesh_dir})" if mesh_dir else ", generated shapes)")
-    return partial, complete, where
+    return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32))
 
 
 def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray, *, seed: int | None = None,
-                       source: str = "", max_batch: int = 32, n_examples: int = 4) -> SyntheticResult:
-    """CD, CD(D,G), CD(G,D) (x1e4) and Fidelity (x1e3) of every baseline, averaged over the pairs."""
+                       source: str = "", max_batch: int = 32, n_examples: int = 4,
+                       surface: np.ndarray | None = None) -> SyntheticResult:
+    """CD, CD(D,G), CD(G,D) (x1e4) and Fidelity (x1e3) of every baseline, averaged over the pairs; with
+    `surface` (a second sample of each true surface), also the metric floor `SyntheticResult.floor`."""
     t0 = time.perf_counter()
     partial = np.asarray(partial, np.float32)
     complete = np.asarray(complete, np.float32)
@@ -119,10 +135,15 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
                         "cd_gd": float(gd.mean()) * CD_SCALE,
                         "fidelity": float(fidelity(partial, out).mean()) * FIDELITY_SCALE,
                         "cd_gd_observed": seen * CD_SCALE, "cd_gd_unobserved": unseen * CD_SCALE}
+    floor = None
+    if surface is not None:
+        dg, gd = chamfer_directional(np.asarray(surface, np.float32), complete)
+        floor = {"cd": float((dg + gd).mean()) * CD_SCALE, "cd_dg": float(dg.mean()) * CD_SCALE,
+                 "cd_gd": float(gd.mean()) * CD_SCALE}
     examples = [(f"synthetic #{i}", partial[i], completion[i], complete[i]) for i in range(min(n_examples, len(partial)))]
     return SyntheticResult(len(partial), seed, source, result, time.perf_counter() - t0, examples,
                            {name: int(out.shape[1]) for name, out in outputs.items()}, int(complete.shape[1]),
-                           observed_fraction)
+                           observed_fraction, floor)
 
 
 def control_point_ablation(checkpoints: Sequence[str | Path], partial: np.ndarray, complete: np.ndarray, *,

@@ -70,14 +70,17 @@ def _occluder(rng: np.random.Generator, dist: float, az: float) -> Mesh | None:
 def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Mesh] | None = None, *,
                 pattern: BeamPattern | str | Sequence[str] = DEFAULT_PATTERNS, n_input: int = 1024,
                 n_gt: int = 2048, margin: float = CROP_MARGIN, ground_clearance: float = GROUND_CLEARANCE,
-                min_points: int = MIN_POINTS, max_attempts: int = 60) -> tuple[np.ndarray, np.ndarray, dict]:
+                min_points: int = MIN_POINTS, max_attempts: int = 60,
+                surface_resample: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """One training pair: (partial (n_input,3), complete (n_gt,3)) float32 normalised by the vehicle's box.
 
     `shape_source`: None or "procedural" (random kind), a kind name, a Mesh, or a list of meshes (one is
     drawn, randomly scaled and deformed). The vehicle stands on the ground 5-50 m from a sensor 1.7-2.0 m
     high, at any azimuth and heading; the scan is cropped and normalised with `gd_completion.geometry` and
     resampled like `gd_completion.pipeline` does (FPS down, cyclic repetition up). Poses giving fewer than
-    `min_points` points are re-drawn (the shape too, every 10 attempts).
+    `min_points` points are re-drawn (the shape too, every 10 attempts). `surface_resample` adds
+    meta["surface_resample"]: a second, independent uniform sample of the same surface (drawn last, so the
+    pair is the same with or without it), whose Chamfer distance to `complete` is the metric's floor.
     """
     if isinstance(pattern, BeamPattern):
         patterns = [pattern]
@@ -113,6 +116,8 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
     meta = {"kind": kind, "label": label, "pattern": pat.name, "n_points": int(len(part)), "distance": float(dist),
             "azimuth": float(az), "yaw": float(yaw), "sensor_height": float(sensor_h), "size": size.astype(np.float32),
             "occluded": occluder is not None, "attempts": attempt + 1}
+    if surface_resample:
+        meta["surface_resample"] = normalize(sample_surface(world, n_gt, rng), box).astype(np.float32)
     return part[pick], gt, meta
 
 
@@ -128,7 +133,7 @@ def _meshes(meshes_dir: str | None) -> list[Mesh] | None:
 
 
 def _make_range(args: tuple) -> list[tuple[np.ndarray, np.ndarray, dict]]:
-    start, stop, seed, meshes_dir, patterns, n_input, n_gt, mesh_fraction = args
+    start, stop, seed, meshes_dir, patterns, n_input, n_gt, mesh_fraction, resample = args
     try:  # one thread per worker: FPS runs in torch
         import torch
         torch.set_num_threads(1)
@@ -139,18 +144,19 @@ def _make_range(args: tuple) -> list[tuple[np.ndarray, np.ndarray, dict]]:
     for i in range(start, stop):
         rng = sample_rng(seed, i)
         source = meshes if meshes and rng.random() < mesh_fraction else None
-        out.append(make_sample(rng, source, pattern=patterns, n_input=n_input, n_gt=n_gt))
+        out.append(make_sample(rng, source, pattern=patterns, n_input=n_input, n_gt=n_gt, surface_resample=resample))
     return out
 
 
 def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = None,
                   patterns: Sequence[str] = DEFAULT_PATTERNS, workers: int = 1, n_input: int = 1024,
-                  n_gt: int = 2048, mesh_fraction: float = 0.3) -> dict[str, Any]:
+                  n_gt: int = 2048, mesh_fraction: float = 0.3, surface_resample: bool = False) -> dict[str, Any]:
     """`n_samples` pairs, deterministic for `seed` whatever `workers` is (sample i uses `sample_rng(seed, i)`).
 
     With `meshes_dir`, a fraction `mesh_fraction` of the shapes come from that folder's meshes, the rest
     are procedural. Returns arrays `partial` (S,n_input,3), `complete` (S,n_gt,3) float32, `n_points`,
-    `size` (S,3), `distance`, `yaw`, `label`, `kind`, `pattern`, and a `metadata` dict.
+    `size` (S,3), `distance`, `yaw`, `label`, `kind`, `pattern`, and a `metadata` dict; with
+    `surface_resample`, also `surface_resample` (S,n_gt,3) (see `make_sample`; the other arrays are unchanged).
     """
     patterns = tuple(patterns)
     for name in patterns:
@@ -160,8 +166,8 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
         _meshes(mdir)  # fail early on a bad folder
     workers = max(1, min(int(workers), n_samples or 1))
     step = max(1, -(-n_samples // (workers * 4)))
-    jobs = [(s, min(s + step, n_samples), int(seed), mdir, patterns, n_input, n_gt, mesh_fraction)
-            for s in range(0, n_samples, step)]
+    jobs = [(s, min(s + step, n_samples), int(seed), mdir, patterns, n_input, n_gt, mesh_fraction,
+             bool(surface_resample)) for s in range(0, n_samples, step)]
     if workers == 1:
         chunks = [_make_range(j) for j in jobs]
     else:
@@ -180,6 +186,9 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
         "kind": np.array([m["kind"] for m in metas], dtype="<U16"),
         "pattern": np.array([m["pattern"] for m in metas], dtype="<U16"),
     }
+    if surface_resample:
+        data["surface_resample"] = (np.stack([m["surface_resample"] for m in metas]) if samples
+                                    else np.zeros((0, n_gt, 3), np.float32))
     labels, counts = np.unique(data["label"], return_counts=True)
     data["metadata"] = {
         "generator_version": GENERATOR_VERSION, "seed": int(seed), "n_samples": int(n_samples),

@@ -40,14 +40,15 @@ def run_evaluation(args: argparse.Namespace) -> int:
     if args.synthetic_samples > 0:
         t0 = time.perf_counter()
         try:
-            partial, complete, source = load_heldout(args.synthetic_samples, seed=args.synthetic_seed,
-                                                     mesh_dir=args.heldout_meshes, path=args.synthetic_data)
+            heldout = load_heldout(args.synthetic_samples, seed=args.synthetic_seed,
+                                   mesh_dir=args.heldout_meshes, path=args.synthetic_data)
+            partial, complete = heldout.partial, heldout.complete
         except EvaluationError as error:
             emit(f"## Synthetic held-out set\n\nSkipped: {error}.")
         else:
             built = time.perf_counter() - t0
-            result = evaluate_synthetic(model, partial, complete, seed=args.synthetic_seed, source=source,
-                                        max_batch=args.max_batch)
+            result = evaluate_synthetic(model, partial, complete, seed=args.synthetic_seed, source=heldout.source,
+                                        max_batch=args.max_batch, surface=heldout.surface)
             emit(synthetic_section(result))
             write_renders(out, "synthetic_vehicles.png", result.examples)
             if args.ablation_checkpoints:
