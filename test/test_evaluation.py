@@ -265,6 +265,12 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
         assert heading in text and heading in printed
     ablation_rows = [line for line in text.splitlines() if line.startswith("| 32 ") or line.startswith("| 64 ")]
     assert [r.split()[1] for r in ablation_rows] == ["32", "64"]
+    # the N_c = 32 checkpoint is the evaluated model: its ablation row repeats the synthetic table's figures
+    cells = lambda line: [c.strip() for c in line.strip("|").split("|")]  # noqa: E731
+    synthetic = {cells(line)[0]: cells(line) for line in text.split("### Completeness by region")[0].splitlines()
+                 if line.startswith(("| GGD-Net", "| generation only"))}
+    row32 = cells(ablation_rows[0])
+    assert row32[3] == synthetic["GGD-Net"][1] and row32[4] == synthetic["generation only"][1]
     pandaset_rows = [line for line in text.split("## PandaSet")[1].splitlines() if line.startswith("| raw input")]
     assert len(pandaset_rows) == 2
     assert pandaset_rows[1].split("|")[2].strip() == "0.000"  # raw input is perfectly faithful to itself

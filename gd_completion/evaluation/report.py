@@ -68,8 +68,9 @@ def region_section(result: SyntheticResult) -> str:
 
 def ablation_section(rows: Sequence[AblationRow], n_samples: int) -> str:
     """Control-point ablation table (one row per checkpoint)."""
-    table = markdown_table(["N_c", "CD(D,G) x1e4", "CD(G,D) x1e4", "CD x1e4", "checkpoint"],
-                           [[r.num_control, r.cd_dg, r.cd_gd, r.cd, Path(r.checkpoint).name] for r in rows])
+    table = markdown_table(["N_c", "CD(D,G) x1e4", "CD(G,D) x1e4", "CD x1e4", "generation only CD x1e4", "checkpoint"],
+                           [[r.num_control, r.cd_dg, r.cd_gd, r.cd, r.cd_generation, Path(r.checkpoint).name]
+                            for r in rows])
     return f"## Control-point ablation (synthetic, {n_samples} pairs, GGD-Net completion)\n\n{table}"
 
 

@@ -57,6 +57,7 @@ class AblationRow:
     num_control: int
     cd_dg: float
     cd_gd: float
+    cd_generation: float = float("nan")   # CD x1e4 of the same checkpoint's generation-only branch
 
     @property
     def cd(self) -> float:
@@ -148,12 +149,14 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
 
 def control_point_ablation(checkpoints: Sequence[str | Path], partial: np.ndarray, complete: np.ndarray, *,
                            max_batch: int = 32) -> list[AblationRow]:
-    """CD(D,G) and CD(G,D) (x1e4) of the GGD-Net completion of each checkpoint (e.g. N_c = 128, 256, 512)."""
+    """CD(D,G) and CD(G,D) (x1e4) of the GGD-Net completion of each checkpoint (e.g. N_c = 128, 256, 512),
+    and the CD of its generation-only branch."""
     rows = []
     for path in checkpoints:
         model = load_model(path)
-        _, completion = network_outputs(model, partial, max_batch=max_batch)
+        generated, completion = network_outputs(model, partial, max_batch=max_batch)
         dg, gd = chamfer_directional(completion, np.asarray(complete, np.float32))
+        gen_dg, gen_gd = chamfer_directional(generated, np.asarray(complete, np.float32))
         rows.append(AblationRow(str(path), model.config.num_control, float(dg.mean()) * CD_SCALE,
-                                float(gd.mean()) * CD_SCALE))
+                                float(gd.mean()) * CD_SCALE, float((gen_dg + gen_gd).mean()) * CD_SCALE))
     return sorted(rows, key=lambda r: r.num_control)
