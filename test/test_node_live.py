@@ -281,11 +281,16 @@ def test_unpaired_boxes_and_clouds_are_dropped_and_counted(marker_node, frames):
     assert client.diag["pending_clouds"] == 0
 
 
-def test_sigterm_exits_cleanly(marker_node):
-    """Last test of the marker node (pytest keeps file order)."""
-    node, _ = marker_node
+def test_sigterm_mid_frame_exits_cleanly(marker_node, frames):
+    """Last test of the marker node (pytest keeps file order): SIGTERM while frames are being completed."""
+    node, client = marker_node
     assert node.proc.poll() is None, "the node died during the bad-input tests"
+    for _ in range(5):
+        client.send(frames[3], client.next_stamp())
+        time.sleep(0.1)
+    started = time.monotonic()
     assert node.stop(signal.SIGTERM) == 0
+    assert time.monotonic() - started < 10.0
     assert "Traceback" not in node.stderr
 
 
