@@ -27,7 +27,9 @@ def run_evaluation(args: argparse.Namespace) -> int:
     out = Path(args.output)
     meta = {k: v for k, v in read_checkpoint_metadata(model_path).items()
             if k not in ("format", "format_version", "config") and isinstance(v, (str, int, float))}
-    sections = [f"Model: `{model_path}` (N_c = {model.config.num_control}, N_o = {model.config.num_output}, "
+    shown = model_path.resolve()
+    shown = shown.relative_to(Path.cwd()) if shown.is_relative_to(Path.cwd()) else shown
+    sections = [f"Model: `{shown}` (N_c = {model.config.num_control}, N_o = {model.config.num_output}, "
                 f"{model.num_parameters():,} parameters"
                 + "".join(f"; {k}: {v}" for k, v in meta.items()) + ")."]
     print(sections[0] + "\n", flush=True)
