@@ -201,12 +201,16 @@ def _rotation_xy(box: Box3D) -> tuple[float, float]:
     return math.cos(box.yaw), math.sin(box.yaw)
 
 
+def _require_usable_box(box: Box3D, action: str) -> None:
+    reason = box_problem(box)
+    if reason is not None:
+        raise BoxError(f"cannot {action} with box ({box.label}, instance {box.instance_id}): {reason}")
+
+
 def normalize(points: np.ndarray, box: Box3D) -> np.ndarray:
     """PCN KITTI normalisation: subtract the box centre, rotate by -yaw, divide by the box length -> float32."""
     points = _check_points(points)
-    reason = box_problem(box)
-    if reason is not None:
-        raise BoxError(f"cannot normalise with box ({box.label}, instance {box.instance_id}): {reason}")
+    _require_usable_box(box, "normalise")
     c, s = _rotation_xy(box)
     d = points.astype(np.float64) - np.asarray(box.center)
     out = np.empty(d.shape, dtype=np.float64)
@@ -220,9 +224,7 @@ def normalize(points: np.ndarray, box: Box3D) -> np.ndarray:
 def denormalize(points: np.ndarray, box: Box3D) -> np.ndarray:
     """Inverse of `normalize`: scale by the box length, rotate by +yaw, add the centre -> float32."""
     points = _check_points(points)
-    reason = box_problem(box)
-    if reason is not None:
-        raise BoxError(f"cannot denormalise with box ({box.label}, instance {box.instance_id}): {reason}")
+    _require_usable_box(box, "denormalise")
     c, s = _rotation_xy(box)
     p = points.astype(np.float64) * box.size[0]
     out = np.empty(p.shape, dtype=np.float64)
