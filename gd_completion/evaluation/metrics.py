@@ -88,6 +88,18 @@ def coverage_error(reference: np.ndarray | Tensor, output: np.ndarray | Tensor) 
 OBSERVED_RADIUS = 0.05
 
 
+def observed_mask(gt: np.ndarray | Tensor, partial: np.ndarray | Tensor, radius: float = OBSERVED_RADIUS) -> Tensor:
+    """True for each ground-truth point with an input point within `radius` (same shape as the distances)."""
+    return nearest_sq_distance(gt, partial) <= radius * radius
+
+
+def region_means(gt_to_output: Tensor, observed: Tensor) -> tuple[float, float, float]:
+    """(observed mean, unobserved mean, observed fraction) of per-ground-truth-point distances, pooled."""
+    d, seen = gt_to_output.flatten(), observed.flatten()
+    mean = lambda x: float(x.mean()) if x.numel() else float("nan")  # noqa: E731
+    return mean(d[seen]), mean(d[~seen]), float(seen.float().mean())
+
+
 def completeness_by_region(gt: np.ndarray | Tensor, output: np.ndarray | Tensor, partial: np.ndarray | Tensor,
                            radius: float = OBSERVED_RADIUS) -> tuple[float, float, float]:
     """CD(G,D) split by region: (observed, unobserved, observed fraction), unscaled.
@@ -95,7 +107,4 @@ def completeness_by_region(gt: np.ndarray | Tensor, output: np.ndarray | Tensor,
     A ground-truth point is observed when an input point lies within `radius` of it; each region's
     value is the mean squared distance from its ground-truth points (pooled over the batch) to the output.
     """
-    to_output = nearest_sq_distance(gt, output).flatten()
-    seen = (nearest_sq_distance(gt, partial) <= radius * radius).flatten()
-    mean = lambda d: float(d.mean()) if d.numel() else float("nan")  # noqa: E731
-    return mean(to_output[seen]), mean(to_output[~seen]), float(seen.float().mean())
+    return region_means(nearest_sq_distance(gt, output), observed_mask(gt, partial, radius))

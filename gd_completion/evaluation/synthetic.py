@@ -9,13 +9,14 @@ from pathlib import Path
 from typing import Any, NamedTuple, Sequence
 
 import numpy as np
+from torch import Tensor
 
 from gd_completion.model.checkpoint import load_model
 from gd_completion.model.network import GGDNet
 
 from . import EvaluationError
 from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs
-from .metrics import CD_SCALE, FIDELITY_SCALE, chamfer_directional, completeness_by_region, fidelity
+from .metrics import CD_SCALE, FIDELITY_SCALE, fidelity, nearest_sq_distance, observed_mask, region_means
 
 # Seeds from EVAL_SEED up are reserved for evaluation; training sets must use seeds below it.
 EVAL_SEED = 9_000_000
@@ -116,6 +117,14 @@ def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path 
     return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32))
 
 
+def _chamfer_row(output: np.ndarray, complete: np.ndarray) -> tuple[dict[str, float], Tensor]:
+    """{cd, cd_dg, cd_gd} x1e4 averaged over the pairs, and the per-point ground truth -> output distances."""
+    to_truth, to_output = nearest_sq_distance(output, complete), nearest_sq_distance(complete, output)
+    dg, gd = to_truth.mean(-1), to_output.mean(-1)
+    return {"cd": float((dg + gd).mean()) * CD_SCALE, "cd_dg": float(dg.mean()) * CD_SCALE,
+            "cd_gd": float(gd.mean()) * CD_SCALE}, to_output
+
+
 def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray, *, seed: int | None = None,
                        source: str = "", max_batch: int = 32, n_examples: int = 4,
                        surface: np.ndarray | None = None) -> SyntheticResult:
@@ -127,20 +136,15 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
     generated, completion = network_outputs(model, partial, max_batch=max_batch)
     outputs = {"input": partial, "mirror": mirror_symmetry(partial), "generation": generated, "ggd": completion}
     result: dict[str, dict[str, float]] = {}
+    observed = observed_mask(complete, partial)
     observed_fraction = float("nan")
     for name in BASELINE_NAMES:
         out = outputs[name]
-        dg, gd = chamfer_directional(out, complete)
-        seen, unseen, observed_fraction = completeness_by_region(complete, out, partial)
-        result[name] = {"cd": float((dg + gd).mean()) * CD_SCALE, "cd_dg": float(dg.mean()) * CD_SCALE,
-                        "cd_gd": float(gd.mean()) * CD_SCALE,
-                        "fidelity": float(fidelity(partial, out).mean()) * FIDELITY_SCALE,
+        row, gt_to_output = _chamfer_row(out, complete)
+        seen, unseen, observed_fraction = region_means(gt_to_output, observed)
+        result[name] = {**row, "fidelity": float(fidelity(partial, out).mean()) * FIDELITY_SCALE,
                         "cd_gd_observed": seen * CD_SCALE, "cd_gd_unobserved": unseen * CD_SCALE}
-    floor = None
-    if surface is not None:
-        dg, gd = chamfer_directional(np.asarray(surface, np.float32), complete)
-        floor = {"cd": float((dg + gd).mean()) * CD_SCALE, "cd_dg": float(dg.mean()) * CD_SCALE,
-                 "cd_gd": float(gd.mean()) * CD_SCALE}
+    floor = _chamfer_row(np.asarray(surface, np.float32), complete)[0] if surface is not None else None
     examples = [(f"synthetic #{i}", partial[i], completion[i], complete[i]) for i in range(min(n_examples, len(partial)))]
     return SyntheticResult(len(partial), seed, source, result, time.perf_counter() - t0, examples,
                            {name: int(out.shape[1]) for name, out in outputs.items()}, int(complete.shape[1]),
@@ -155,8 +159,7 @@ def control_point_ablation(checkpoints: Sequence[str | Path], partial: np.ndarra
     for path in checkpoints:
         model = load_model(path)
         generated, completion = network_outputs(model, partial, max_batch=max_batch)
-        dg, gd = chamfer_directional(completion, np.asarray(complete, np.float32))
-        gen_dg, gen_gd = chamfer_directional(generated, np.asarray(complete, np.float32))
-        rows.append(AblationRow(str(path), model.config.num_control, float(dg.mean()) * CD_SCALE,
-                                float(gd.mean()) * CD_SCALE, float((gen_dg + gen_gd).mean()) * CD_SCALE))
+        ggd = _chamfer_row(completion, np.asarray(complete, np.float32))[0]
+        gen = _chamfer_row(generated, np.asarray(complete, np.float32))[0]
+        rows.append(AblationRow(str(path), model.config.num_control, ggd["cd_dg"], ggd["cd_gd"], gen["cd"]))
     return sorted(rows, key=lambda r: r.num_control)
