@@ -86,3 +86,7 @@ def test_warm_start_copies_matching_tensors_only(tmp_path):
     warm = train(other, (_data(8, 0)[0], _data(8, 0)[1]), _data(4, 1), tmp_path / "warm", _settings(epochs=1),
                  init_from=res.last_path)
     assert warm.epochs_done == 1
+    from gd_completion.errors import CheckpointError
+    with pytest.raises(CheckpointError, match="nope.pt: file not found"):
+        train(other, _data(8, 0), _data(4, 1), tmp_path / "missing", _settings(epochs=1),
+              init_from=tmp_path / "nope.pt")
