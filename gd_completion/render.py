@@ -6,6 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
+from gd_completion.atomic import atomic_path
 from gd_completion.geometry import Box3D, box_corners
 
 INPUT_COLOUR = "#2b6cb0"
@@ -33,13 +34,10 @@ def _xyz(points: np.ndarray | None) -> np.ndarray:
 
 def _save(fig, path: str | Path) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial.png")
     try:
-        fig.savefig(tmp, dpi=fig.dpi)
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=fig.dpi)
     finally:
-        tmp.unlink(missing_ok=True)
         _pyplot().close(fig)
     return path
 

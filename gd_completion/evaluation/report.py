@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import os
 from collections import Counter
 from pathlib import Path
 from typing import Sequence
@@ -10,6 +9,7 @@ from typing import Sequence
 import numpy as np
 
 from gd_completion.render import render_vehicles
+from gd_completion.atomic import atomic_path
 
 from .baselines import BASELINE_NAMES, BASELINE_TITLES
 from .metrics import OBSERVED_RADIUS
@@ -105,12 +105,9 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
 
 def write_report(out_dir: str | Path, sections: Sequence[str], title: str = "GGD-Net evaluation") -> Path:
     """Write `# title` and the sections to out_dir/report.md (atomically); returns the path."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / "report.md"
-    tmp = out_dir / ".report.md.partial"
-    tmp.write_text(f"# {title}\n\n" + "\n\n".join(sections) + "\n")
-    os.replace(tmp, path)
+    path = Path(out_dir) / "report.md"
+    with atomic_path(path) as tmp:
+        tmp.write_text(f"# {title}\n\n" + "\n\n".join(sections) + "\n")
     return path
 
 

@@ -8,6 +8,7 @@ from typing import Any
 import torch
 
 from ..errors import CheckpointError
+from ..atomic import atomic_path
 from .config import GGDConfig
 from .network import GGDNet
 
@@ -19,15 +20,13 @@ FORMAT_VERSION = 1
 def save_checkpoint(path: str | os.PathLike, model: GGDNet, **extra: Any) -> Path:
     """Write model weights, config and `extra` (plain tensors/str/int/float/dicts) atomically to `path`."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     reserved = {"format", "format_version", "config", "state_dict"} & set(extra)
     if reserved:
         raise ValueError(f"save_checkpoint: reserved keys in extra: {sorted(reserved)}")
     data = {"format": FORMAT, "format_version": FORMAT_VERSION, "config": model.config.to_dict(),
             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, **extra}
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(data, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(data, tmp)
     return path
 
 

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from gd_completion.atomic import atomic_path
 from gd_completion.errors import DataFormatError
 from gd_completion.geometry import Box3D, crop_boxes, normalize
 from gd_completion.pipeline import resample_indices
@@ -214,11 +215,8 @@ def save_dataset(path: str | Path, data: dict[str, Any]) -> Path:
     meta = dict(data.get("metadata", {}))
     meta["stored_float16"] = [k for k in _POINT_KEYS if k in arrays]
     arrays["metadata_json"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
-    tmp.replace(path)
     return path
 
 
