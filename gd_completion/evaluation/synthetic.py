@@ -1,8 +1,6 @@
 """Held-out synthetic benchmark: every baseline against complete ground truth, and the control-point ablation."""
 from __future__ import annotations
 
-import importlib
-import inspect
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,6 +11,7 @@ from torch import Tensor
 
 from gd_completion.model.checkpoint import load_model
 from gd_completion.model.network import GGDNet
+from gd_completion.synth.dataset import build_dataset, load_dataset
 
 from . import EvaluationError
 from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs
@@ -20,7 +19,6 @@ from .metrics import CD_SCALE, FIDELITY_SCALE, fidelity, nearest_sq_distance, ob
 
 # Seeds from EVAL_SEED up are reserved for evaluation; training sets must use seeds below it.
 EVAL_SEED = 9_000_000
-_MESH_KEYWORDS = ("mesh_dir", "mesh_folder", "meshes_dir", "mesh_root", "meshes")
 SYNTHETIC_METRICS: tuple[str, ...] = ("cd", "cd_dg", "cd_gd", "fidelity", "cd_gd_observed", "cd_gd_unobserved")
 
 
@@ -65,19 +63,9 @@ class AblationRow:
         return self.cd_dg + self.cd_gd
 
 
-def _pairs(data: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """(partial (S,N,3), complete (S,M,3)) float32 out of the synth dataset's return value."""
-    if isinstance(data, dict):
-        partial = data.get("partial")
-        complete = next((data[k] for k in ("complete", "gt", "full") if k in data), None)
-    elif isinstance(data, (tuple, list)) and len(data) >= 2 and not hasattr(data, "partial"):
-        partial, complete = data[0], data[1]
-    else:
-        partial = getattr(data, "partial", None)
-        complete = next((getattr(data, k) for k in ("complete", "gt", "full") if hasattr(data, k)), None)
-    if partial is None or complete is None:
-        raise EvaluationError(f"{where}: expected (partial, complete) arrays, got {type(data).__name__}")
-    partial, complete = np.asarray(partial, np.float32), np.asarray(complete, np.float32)
+def _pairs(data: dict[str, Any], where: str) -> tuple[np.ndarray, np.ndarray]:
+    """(partial (S,N,3), complete (S,M,3)) float32 of a synth dataset dict, shapes checked."""
+    partial, complete = np.asarray(data["partial"], np.float32), np.asarray(data["complete"], np.float32)
     if partial.ndim != 3 or complete.ndim != 3 or partial.shape[-1] != 3 or complete.shape[-1] != 3 \
             or len(partial) != len(complete):
         raise EvaluationError(f"{where}: partial {partial.shape} and complete {complete.shape} are not "
@@ -87,31 +75,17 @@ def _pairs(data: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
 
 def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path | None = None,
                  path: str | Path | None = None) -> HeldOut:
-    """Held-out pairs from `gd_completion.synth.dataset`: `load_dataset(path)` when `path` is given, else
-    `build_dataset(n_samples, seed, ..., surface_resample=True)` on a seed reserved for evaluation (and the
-    held-out mesh folder `mesh_dir`, when given). EvaluationError when unavailable."""
-    try:
-        dataset = importlib.import_module("gd_completion.synth.dataset")
-    except ImportError as error:
-        raise EvaluationError(f"gd_completion.synth.dataset is not available ({error})") from error
+    """Held-out pairs: `load_dataset(path)` when `path` is given, else `build_dataset(n_samples, seed,
+    surface_resample=True)` on a seed reserved for evaluation (with the held-out mesh folder `mesh_dir`)."""
     if path is not None:
-        data = dataset.load_dataset(Path(path))
+        data = load_dataset(Path(path))
         partial, complete = _pairs(data, str(path))
-        surface = data.get("surface_resample") if isinstance(data, dict) else None
+        surface = data.get("surface_resample")
         return HeldOut(partial[:n_samples], complete[:n_samples], f"{path} (first {min(n_samples, len(partial))})",
                        None if surface is None else np.asarray(surface, np.float32)[:n_samples])
-    kwargs: dict[str, Any] = {}
-    if mesh_dir is not None:
-        mesh_dir = Path(mesh_dir)
-        if not mesh_dir.is_dir():
-            raise EvaluationError(f"held-out mesh folder {mesh_dir}: not a directory")
-        params = inspect.signature(dataset.build_dataset).parameters
-        keyword = next((k for k in _MESH_KEYWORDS if k in params), None)
-        if keyword is None:
-            raise EvaluationError(f"gd_completion.synth.dataset.build_dataset takes no mesh folder argument "
-                                  f"(looked for {', '.join(_MESH_KEYWORDS)})")
-        kwargs[keyword] = mesh_dir
-    data = dataset.build_dataset(n_samples, seed, surface_resample=True, **kwargs)
+    if mesh_dir is not None and not Path(mesh_dir).is_dir():
+        raise EvaluationError(f"held-out mesh folder {mesh_dir}: not a directory")
+    data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, surface_resample=True)
     partial, complete = _pairs(data, "build_dataset")
     where = f"build_dataset(seed={seed}" + (f", meshes {mesh_dir})" if mesh_dir else ", generated shapes)")
     return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32))
