@@ -183,7 +183,7 @@ def _write_completion(writer: Any, conn: Any, frame: _Frame, summary: Completion
     result = frame.result.result()
     summary.vehicles_completed += int(result.stats.completed)
     summary.skipped.update(result.stats.skipped)
-    summary.ignored_boxes += int(getattr(result.stats, "ignored_labels", 0))
+    summary.ignored_boxes += result.stats.ignored_labels
     msg = bagio.pointcloud2_msg(write_points(completion_to_structured(result)), frame.frame_id, frame.stamp)
     writer.write(conn, frame.timestamp, bagio.serialize(msg, bagio.POINTCLOUD2))
     summary.frames += 1

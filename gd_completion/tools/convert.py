@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib
-import importlib.util
 import itertools
 import sys
 import time
@@ -17,6 +15,7 @@ from gd_completion import bagio
 from gd_completion.datasets import DatasetFrame
 from gd_completion.errors import DataFormatError
 from gd_completion.pointcloud2 import write_points
+from gd_completion.tools.convert_hesai import add_hesai_parser
 
 KITTI_TOPICS = ("/kitti/points", "/kitti/detections", "/kitti/markers")
 TF_STATIC = "/tf_static"
@@ -164,7 +163,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add `convert kitti`, `convert pandaset` (and `convert hesai` when that module is present)."""
+    """Add `convert kitti`, `convert pandaset` and `convert hesai`."""
     parser = subparsers.add_parser("convert", help="convert a dataset to a rosbag2 recording",
                                    description=__doc__)
     sub = parser.add_subparsers(dest="dataset", required=True)
@@ -184,5 +183,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     panda_parser.add_argument("--sensors", default="0,1", help="sensor ids: 0 Pandar64, 1 PandarGT (default 0,1)")
     panda_parser.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
     panda_parser.set_defaults(func=_run_pandaset)
-    if importlib.util.find_spec("gd_completion.tools.convert_hesai") is not None:
-        importlib.import_module("gd_completion.tools.convert_hesai").add_hesai_parser(sub)
+    add_hesai_parser(sub)
