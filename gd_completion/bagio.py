@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
-from gd_completion.box_messages import (MARKER_ADD, MARKER_CUBE, detections_to_boxes, markers_to_boxes,
+from gd_completion.box_messages import (MARKER_ADD, MARKER_CUBE, BoxSet, detections_to_boxes, markers_to_boxes,
                                         yaw_from_quaternion)
 from gd_completion.errors import BagError, DataFormatError
 from gd_completion.geometry import Box3D
@@ -331,10 +331,15 @@ def boxes_from_markers(msg: Any) -> list[Box3D]:
     return list(markers_to_boxes(msg).boxes)
 
 
+def box_set_from_message(msg: Any, msgtype: str) -> BoxSet:
+    """The BoxSet (stamp, boxes, per-box frame) of a Detection3DArray or MarkerArray message, as the node reads it."""
+    if msgtype == DETECTION3D_ARRAY:
+        return detections_to_boxes(msg)
+    if msgtype == MARKER_ARRAY:
+        return markers_to_boxes(msg)
+    raise BagError(f"boxes topic has type {msgtype}; expected {DETECTION3D_ARRAY} or {MARKER_ARRAY}")
+
+
 def boxes_from_message(msg: Any, msgtype: str) -> list[Box3D]:
     """Boxes from a Detection3DArray or MarkerArray message."""
-    if msgtype == DETECTION3D_ARRAY:
-        return boxes_from_detections(msg)
-    if msgtype == MARKER_ARRAY:
-        return boxes_from_markers(msg)
-    raise BagError(f"boxes topic has type {msgtype}; expected {DETECTION3D_ARRAY} or {MARKER_ARRAY}")
+    return list(box_set_from_message(msg, msgtype).boxes)

@@ -150,7 +150,7 @@ def test_complete_workers_arguments(kitti_bag: Path, tmp_path: Path, capsys: pyt
     assert list(tmp_path.iterdir()) == []
 
 
-def _write_bag(path: Path, with_boxes: bool) -> None:
+def _write_bag(path: Path, with_boxes: bool, boxes_frame: str = "lidar") -> None:
     cloud = np.zeros(10, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     with bagio.atomic_bag_writer(path) as writer:
         pts = bagio.add_connection(writer, "/points", bagio.POINTCLOUD2)
@@ -163,7 +163,7 @@ def _write_bag(path: Path, with_boxes: bool) -> None:
                 header=bagio.header("lidar", k), packets=[]), "pandar_msgs/msg/PandarScan"))
             if boxes is not None:
                 writer.write(boxes, k, bagio.serialize(bagio.marker_array_msg(
-                    [Box3D((1, 2, 0), (4, 2, 1.5), 0.1, "car", 3)], "lidar", k), bagio.MARKER_ARRAY))
+                    [Box3D((1, 2, 0), (4, 2, 1.5), 0.1, "car", 3)], boxes_frame, k), bagio.MARKER_ARRAY))
 
 
 @pytest.mark.parametrize("case", ["truncated", "not_a_bag", "missing", "no_boxes", "unknown_boxes_type",
@@ -208,8 +208,16 @@ def test_marker_boxes_and_unknown_types_are_copied(model_path: str, tmp_path: Pa
     src = tmp_path / "in"
     _write_bag(src, with_boxes=True)
     summary = complete_bag(src, tmp_path / "out", model=model_path, progress=False)
-    assert summary.frames == 2 and summary.skipped["too_few_points"] == 2
+    assert summary.frames == 2 and dict(summary.skipped) == {"too_few_points": 2}
     assert _raw(tmp_path / "out")[1]["/other"] == _raw(src)[1]["/other"]
+
+
+def test_boxes_in_another_frame_are_skipped_and_counted(model_path: str, tmp_path: Path) -> None:
+    src = tmp_path / "in"
+    _write_bag(src, with_boxes=True, boxes_frame="map")   # the clouds are in "lidar"; no tf offline
+    summary = complete_bag(src, tmp_path / "out", model=model_path, progress=False)
+    assert summary.frames == 2 and dict(summary.skipped) == {"boxes_in_other_frame": 2}
+    assert "boxes_in_other_frame 2" in summary.text()
 
 
 def test_render_completed_bag(completed_bag: Path, tmp_path: Path) -> None:

@@ -17,6 +17,7 @@ from typing import Any, Callable
 import numpy as np
 
 from gd_completion import bagio
+from gd_completion.box_messages import BoxSet
 from gd_completion.errors import BagError, GDCompletionError
 from gd_completion.geometry import Box3D
 from gd_completion.pointcloud2 import read_xyz, write_points
@@ -85,19 +86,15 @@ def pick_topics(reader: Any, cloud_topic: str | None, boxes_topic: str | None) -
     return cloud_topic, boxes_topic, types[boxes_topic]
 
 
-def read_boxes(reader: Any, topic: str, msgtype: str) -> dict[int, tuple[str, list[Box3D]]]:
-    """Header stamp (ns) -> (frame id, boxes) of every message on the boxes topic."""
-    out: dict[int, tuple[str, list[Box3D]]] = {}
+def read_boxes(reader: Any, topic: str, msgtype: str) -> dict[int, BoxSet]:
+    """Header stamp (ns) -> BoxSet of every message on the boxes topic (read as the node reads them; an
+    empty MarkerArray has no header to pair by and is left out)."""
+    out: dict[int, BoxSet] = {}
     conns = [c for c in reader.connections if c.topic == topic]
     for _conn, _t, raw in bagio.iter_raw(reader, conns):
-        msg = bagio.deserialize(raw, msgtype, f"{reader.path} {topic}")
-        if msgtype == bagio.DETECTION3D_ARRAY:
-            hdr = msg.header
-        else:
-            if not len(msg.markers):  # an empty MarkerArray has no header to pair by
-                continue
-            hdr = msg.markers[-1].header
-        out[bagio.stamp_ns(hdr.stamp)] = (hdr.frame_id, bagio.boxes_from_message(msg, msgtype))
+        box_set = bagio.box_set_from_message(bagio.deserialize(raw, msgtype, f"{reader.path} {topic}"), msgtype)
+        if box_set.stamp_ns is not None:
+            out[box_set.stamp_ns] = box_set
     return out
 
 
@@ -269,10 +266,9 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                         if stamp not in boxes:
                             summary.frames_without_boxes += 1
                         else:
-                            box_frame, frame_boxes = boxes[stamp]
-                            if box_frame and box_frame != cloud.header.frame_id:
-                                summary.skipped["boxes_in_other_frame"] += len(frame_boxes)
-                                frame_boxes = []
+                            frame_boxes, wrong_frame = boxes[stamp].split_by_frame(cloud.header.frame_id)
+                            if wrong_frame:
+                                summary.skipped["boxes_in_other_frame"] += wrong_frame
                         future = executor.submit(complete_frame, read_xyz(cloud), frame_boxes)
                         queue.append(_Frame(timestamp, cloud.header.frame_id, stamp, future))
                         in_flight += 1

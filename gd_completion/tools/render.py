@@ -12,15 +12,14 @@ from gd_completion.errors import BagError
 from gd_completion.geometry import normalize
 from gd_completion.pointcloud2 import read_points, read_xyz
 from gd_completion.render import render_birdseye, render_vehicles
-from gd_completion.tools.complete import default_output_topic, pick_topics
+from gd_completion.tools.complete import default_output_topic, pick_topics, read_boxes
 
 
-def _messages_at(reader: Any, topic: str, msgtype: str, stamp: int) -> Any | None:
+def _cloud_at(reader: Any, topic: str, stamp: int) -> Any | None:
     conns = [c for c in reader.connections if c.topic == topic]
     for _c, _t, raw in bagio.iter_raw(reader, conns):
-        msg = bagio.deserialize(raw, msgtype, f"{reader.path} {topic}")
-        header = msg.header if hasattr(msg, "header") else (msg.markers[-1].header if msg.markers else None)
-        if header is not None and bagio.stamp_ns(header.stamp) == stamp:
+        msg = bagio.deserialize(raw, bagio.POINTCLOUD2, f"{reader.path} {topic}")
+        if bagio.stamp_ns(msg.header.stamp) == stamp:
             return msg
     return None
 
@@ -44,11 +43,11 @@ def render_bag_frame(bag: str | Path, out: str | Path, *, frame: int = 0, cloud_
         if cloud is None:
             raise BagError(f"{bag}: {cloud_topic} has no frame {frame}")
         stamp = bagio.stamp_ns(cloud.header.stamp)
-        boxes_msg = _messages_at(reader, boxes_topic, boxes_type, stamp)
-        boxes = bagio.boxes_from_message(boxes_msg, boxes_type) if boxes_msg is not None else []
+        box_set = read_boxes(reader, boxes_topic, boxes_type).get(stamp)
+        boxes = box_set.split_by_frame(cloud.header.frame_id)[0] if box_set is not None else []
         completed = None
         if completed_topic in {c.topic for c in reader.connections}:
-            completed = _messages_at(reader, completed_topic, bagio.POINTCLOUD2, stamp)
+            completed = _cloud_at(reader, completed_topic, stamp)
     points = read_xyz(cloud)
     comp = read_points(completed) if completed is not None else None
     generated = comp[comp["generated"] == 1] if comp is not None and "generated" in comp.dtype.names else comp
