@@ -1,7 +1,9 @@
 """Completion pipeline: crop vehicles by their boxes, normalise, one batched GGD-Net pass, map back."""
 from __future__ import annotations
 
+import os
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -69,22 +71,28 @@ def completion_to_structured(completion: FrameCompletion) -> np.ndarray:
 
 def resample_indices(counts: Sequence[int], normalized: Sequence[np.ndarray], n: int) -> list[np.ndarray]:
     """Indices giving exactly `n` points per vehicle: farthest point sampling down, cyclic repetition up."""
-    result: list[np.ndarray | None] = [None] * len(counts)
-    large = [i for i, m in enumerate(counts) if m > n]
-    for i, m in enumerate(counts):
+    result = []
+    for m, points in zip(counts, normalized):
         if m <= n:
-            result[i] = np.arange(n) % m
-    if large:
-        longest = max(counts[i] for i in large)
-        padded = np.stack([np.take(normalized[i], np.arange(longest) % counts[i], axis=0) for i in large])
-        picked = farthest_point_sample(torch.from_numpy(padded.astype(np.float32)), n).numpy()
-        for row, i in enumerate(large):
-            result[i] = picked[row] % counts[i]
-    return result  # type: ignore[return-value]
+            result.append(np.arange(n) % m)
+        else:   # one cloud at a time: each vehicle's sample is independent of the others
+            cloud = torch.from_numpy(np.ascontiguousarray(points[:m], dtype=np.float32)).unsqueeze(0)
+            result.append(farthest_point_sample(cloud, n)[0].numpy())
+    return result
+
+
+def default_threads() -> int:
+    """Vehicle threads when none are asked for: one per CPU core available to this process."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 class VehicleCompleter:
-    """Completes every vehicle of a frame with one batched forward pass of a GGD-Net."""
+    """Completes every vehicle of a frame with the GGD-Net, one vehicle per task on `threads` CPU threads.
+
+    Each vehicle is computed on its own (bitwise the same result alone or in any frame). On the CPU,
+    `threads` > 1 completes that many vehicles at once, each on one torch thread: the network's searches
+    and small layers use a second intra-op thread poorly, so vehicles in parallel use the cores best.
+    """
 
     def __init__(
         self,
@@ -97,6 +105,7 @@ class VehicleCompleter:
         include_input_points: bool = True,
         max_batch: int = 32,
         device: str = "cpu",
+        threads: int = 1,
     ) -> None:
         self.model = model.to(device).eval()
         self.device = torch.device(device)
@@ -108,16 +117,30 @@ class VehicleCompleter:
         self.max_batch = int(max_batch)
         self.num_input = model.config.num_input
         self.num_output = model.config.num_output
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        self.threads = int(threads) if self.device.type == "cpu" else 1
+        self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="gd-vehicle") if self.threads > 1 else None
 
     @classmethod
     def from_checkpoint(
         cls, path: str | Path | None = None, *, device: str = "cpu", num_threads: int | None = None, **options
     ) -> "VehicleCompleter":
-        """Load a checkpoint (the shipped weights when `path` is None or empty)."""
-        if num_threads:
-            torch.set_num_threads(int(num_threads))
+        """Load a checkpoint (the shipped weights when `path` is None or empty).
+
+        `num_threads`: CPU threads completing vehicles in parallel, one torch thread each (None or 0:
+        one per core). Sets torch's intra-op threads of this process to 1.
+        """
+        if torch.device(device).type == "cpu":
+            torch.set_num_threads(1)
         model = load_model(path or DEFAULT_WEIGHTS, device=device)
-        return cls(model, device=device, **options)
+        return cls(model, device=device, threads=int(num_threads or default_threads()), **options)
+
+    def close(self) -> None:
+        """Stop the vehicle threads (idempotent)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
 
     def prepare(self, points: np.ndarray, boxes: Sequence[Box3D], stats: FrameStats) -> list[PreparedVehicle]:
         """Drop non-finite points, filter and validate boxes, crop; counts every skip in `stats`."""
@@ -147,7 +170,6 @@ class VehicleCompleter:
             vehicles.append(PreparedVehicle(box, measured[above_ground], normalized[above_ground]))
         return vehicles
 
-    @torch.inference_mode()
     def complete_normalized(self, partials: Sequence[np.ndarray]) -> np.ndarray:
         """Complete vehicles given in the normalised box frame; returns (B, num_output, 3) float32."""
         if not partials:
@@ -155,11 +177,15 @@ class VehicleCompleter:
         counts = [len(p) for p in partials]
         picks = resample_indices(counts, partials, self.num_input)
         batch = np.stack([p[idx] for p, idx in zip(partials, picks)]).astype(np.float32)
-        outputs = []
-        for start in range(0, len(batch), self.max_batch):
-            chunk = torch.from_numpy(batch[start:start + self.max_batch]).to(self.device)
-            outputs.append(self.model(chunk).completion.float().cpu().numpy())
+        if self._pool is not None and len(batch) > 1:
+            outputs = list(self._pool.map(self._infer, np.split(batch, len(batch))))
+        else:
+            outputs = [self._infer(batch[s:s + self.max_batch]) for s in range(0, len(batch), self.max_batch)]
         return np.concatenate(outputs)
+
+    def _infer(self, batch: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():   # thread-local: set in the thread that runs the model
+            return self.model(torch.from_numpy(batch).to(self.device)).completion.float().cpu().numpy()
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D]) -> FrameCompletion:
         """Complete every vehicle of one frame; points in and out are in the cloud's frame."""

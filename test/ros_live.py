@@ -14,6 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Float64
 from visualization_msgs.msg import MarkerArray
 
 from gd_completion.geometry import Box3D
@@ -79,7 +80,8 @@ class NodeProcess:
 class Client:
     """Publishes clouds and boxes, collects completed clouds by stamp and the node's latest diagnostics."""
 
-    def __init__(self, context, boxes_cls=MarkerArray, prefix: str = "", node_name: str = "completer") -> None:
+    def __init__(self, context, boxes_cls=MarkerArray, prefix: str = "", node_name: str = "completer",
+                 subscribe_output: bool = True) -> None:
         self.status_name = f"/{node_name}: vehicle completion"  # diagnostics of that node only
         self.node = rclpy.create_node(f"completer_test_client{prefix}", context=context)
         self.cloud_pub = self.node.create_publisher(PointCloud2, f"{prefix}points", qos_profile_sensor_data)
@@ -89,13 +91,22 @@ class Client:
         self.reply_times: dict[int, float] = {}  # time.monotonic() at arrival, by stamp
         self.diag: dict[str, float] = {}
         self.diag_count = 0
-        self.node.create_subscription(PointCloud2, f"{prefix}completed_vehicles", self._on_reply, QoSProfile(depth=50))
+        self.output_topic = f"{prefix}completed_vehicles"
+        if subscribe_output:
+            self.subscribe_output()
+        self.processing_times: list[float] = []   # the node's ~/debug/processing_time_ms
+        self.node.create_subscription(Float64, f"/{node_name}/debug/processing_time_ms",
+                                      lambda m: self.processing_times.append(m.data), QoSProfile(depth=50))
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, QoSProfile(depth=10))
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self.executor.spin, daemon=True)
         self._thread.start()
         self.stamp_ns = 1_000_000_000_000
+
+    def subscribe_output(self) -> None:
+        """Subscribe to the node's completed clouds (the node does no model work while nobody does)."""
+        self.node.create_subscription(PointCloud2, self.output_topic, self._on_reply, QoSProfile(depth=50))
 
     def _on_reply(self, msg: PointCloud2) -> None:
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec

@@ -294,6 +294,45 @@ def test_sigterm_mid_frame_exits_cleanly(marker_node, frames):
     assert "Traceback" not in node.stderr
 
 
+# -- lazy output, processing time ----------------------------------------------------------------------
+
+def test_no_model_work_without_subscribers(ros_context, frames, tmp_path):
+    """Paired frames are counted, not completed, while nobody subscribes to the output; each completed
+    frame's processing time goes out on ~/debug/processing_time_ms."""
+    env, context = ros_context
+    topics = {"cloud_topic": "lazy_points", "boxes_topic": "lazy_detections", "output_topic": "lazy_completed_vehicles"}
+    node = NodeProcess(tmp_path, {**BASE_PARAMS, **topics}, env, "lazy")
+    client = None
+    try:
+        node.wait_ready()
+        client = Client(context, prefix="lazy_", node_name="lazy", subscribe_output=False)
+        end = time.monotonic() + 30.0
+        while client.diag.get("frames_without_subscribers", 0) < 3 and time.monotonic() < end:
+            client.send(frames[3])
+            time.sleep(0.3)
+        assert client.diag.get("frames_without_subscribers", 0) >= 3, node.stderr[-2000:]
+        assert client.diag["frames_published"] == 0 and client.diag["vehicles_completed"] == 0
+        assert client.processing_times == []
+        client.subscribe_output()
+        client.warm_up(frames[3])
+        stamp = client.send(frames[4])
+        msg = client.wait_reply(stamp)
+        assert msg is not None, node.stderr[-2000:]
+        check_completion(msg, frames[4], stamp, {0, 1})
+        published = client.settled_diagnostics()["frames_published"]
+        end = time.monotonic() + 5.0
+        while len(client.processing_times) < published and time.monotonic() < end:
+            time.sleep(0.05)
+        assert len(client.processing_times) == published >= 2
+        assert all(0.0 < t < 60_000.0 for t in client.processing_times)
+    finally:
+        if client is not None:
+            client.close()
+        code = node.stop(signal.SIGTERM)
+    assert code == 0
+    assert "Traceback" not in node.stderr
+
+
 # -- Detection3DArray, SIGINT, configuration errors ----------------------------------------------------
 
 def test_detection3d_boxes_live_and_sigint(ros_context, frames, tmp_path):

@@ -131,17 +131,20 @@ class LocalFeatures(nn.Module):
         self.register_buffer("inv_radius", 1.0 / (cfg.radius * torch.tensor(cfg.ball_scales, dtype=torch.float32)),
                              persistent=False)
 
+    EVAL_CHUNK = 1024   # queries (all batch elements) per chunk of the MLP in eval mode
+
     def forward(self, centers: Tensor, partial: Tensor, order: Tensor) -> Tensor:
         b, q, _ = centers.shape
+        idx = self.group(centers, partial, order)   # every query at once: the same searches in training and eval
         if self.training or b * q <= self.EVAL_CHUNK:
-            return self._forward(centers, partial, order)
+            return self._features(centers, partial, idx)
         # eval: chunks of query points keep the (chunk, S, M, C) activations in cache (BN is folded, so exact)
         step = max(1, self.EVAL_CHUNK // b)
-        return torch.cat([self._forward(centers[:, s:s + step], partial, order) for s in range(0, q, step)], 1)
+        return torch.cat([self._features(centers[:, s:s + step], partial, idx[:, s:s + step])
+                          for s in range(0, q, step)], 1)
 
-    EVAL_CHUNK = 1024   # queries (all batch elements) per chunk in eval mode
-
-    def _forward(self, centers: Tensor, partial: Tensor, order: Tensor) -> Tensor:
+    def group(self, centers: Tensor, partial: Tensor, order: Tensor) -> Tensor:
+        """Indices (B, Q, S, M) into `partial` of the M ball neighbours of every center at every scale."""
         b, q, _ = centers.shape
         n = partial.shape[1]
         groups = []
@@ -153,7 +156,10 @@ class LocalFeatures(nn.Module):
                 sub = order[:, :size]
                 local = ball_group(centers, gather_points(partial, sub), s * self.radius, self.m)
                 groups.append(torch.gather(sub, 1, local.reshape(b, -1)).view(b, q, self.m))
-        idx = torch.stack(groups, 2)                                                    # (B,Q,S,M)
+        return torch.stack(groups, 2)
+
+    def _features(self, centers: Tensor, partial: Tensor, idx: Tensor) -> Tensor:
+        b, q, _ = centers.shape
         grouped = gather_points(partial, idx)                                           # (B,Q,S,M,3)
         rel = (grouped - centers[:, :, None, None, :]) * self.inv_radius.view(1, 1, -1, 1, 1)
         feat = self.mlp(rel).amax(3)                                                    # (B,Q,S,C)

@@ -1,65 +1,81 @@
-"""Vectorised point-cloud operators (CPU and CUDA, no custom kernels): FPS, kNN, grouping, neighbour means."""
+"""Point-cloud operators: FPS, kNN and ball queries, grouping, neighbour means.
+
+The neighbour searches (FPS, `window_knn`, `knn_graph`, `ball_group`) have one definition and two
+implementations: compiled kernels (`kernels`, numba) for CPU tensors, and torch ops for CUDA tensors or
+when `use_compiled_kernels(False)`. Both compute squared distances as ((dx*dx + dy*dy) + dz*dz) in
+float32 (never through a GEMM, whose rounding depends on the matrix shapes), so their indices are
+identical except the order of exact distance ties, and no result depends on the rest of the batch.
+"""
 from __future__ import annotations
 
-import warnings
+from contextlib import contextmanager
+from typing import Iterator
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-
-# Above this many distance entries FPS uses the low-memory path (one row of distances per step).
-_FPS_DENSE_LIMIT = 1 << 22
-# Distance entries per chunk in kNN / ball queries (keeps the matrix in cache).
+# Distance entries per chunk in brute-force ball queries (keeps the matrix in cache).
 _CHUNK_ENTRIES = 1 << 19
+_COMPILED = {"enabled": True}
 
 
-def _fps_dense(xyz: Tensor, n: int) -> Tensor:
-    """FPS with a precomputed distance matrix: 3 small ops per step."""
-    b, m, _ = xyz.shape
-    sq = (xyz * xyz).sum(-1, keepdim=True)
-    one = torch.ones_like(sq)
-    d = torch.bmm(torch.cat([xyz, sq, one], -1), torch.cat([-2.0 * xyz, one, sq], -1).transpose(1, 2))
-    d = d.clamp_min_(0.0).view(b * m, m)
-    offset = torch.arange(b, device=xyz.device) * m
-    far = torch.zeros(b, dtype=torch.long, device=xyz.device)
-    picks = [far]
-    mind = torch.full((b, m), float("inf"), dtype=xyz.dtype, device=xyz.device)
-    for i in range(n - 1):
-        mind = torch.minimum(mind, d.index_select(0, far + offset))
-        far = mind.argmax(1)
-        picks.append(far)
-    return torch.stack(picks, 1)
+def use_compiled_kernels(enabled: bool) -> bool:
+    """Route CPU neighbour searches to the compiled kernels (default) or to the torch ops; returns the old value."""
+    old = _COMPILED["enabled"]
+    _COMPILED["enabled"] = bool(enabled)
+    return old
 
 
-def _fps_rows(xyz: Tensor, n: int) -> Tensor:
-    """FPS computing one row of distances per step (large clouds)."""
+@contextmanager
+def torch_kernels() -> Iterator[None]:
+    """Context in which CPU neighbour searches run the torch ops (the reference the kernels are tested against)."""
+    old = use_compiled_kernels(False)
+    try:
+        yield
+    finally:
+        use_compiled_kernels(old)
+
+
+def _compiled(t: Tensor) -> bool:
+    return _COMPILED["enabled"] and t.device.type == "cpu"
+
+
+def _as_numpy(t: Tensor):
+    return t.detach().to(torch.float32).contiguous().numpy()
+
+
+def neighbour_distance(a: Tensor, b: Tensor) -> Tensor:
+    """Squared distances (B, Na, Nb) computed as ((dx*dx + dy*dy) + dz*dz): the neighbour searches' arithmetic."""
+    d = None
+    for c in range(3):
+        diff = a[..., c].unsqueeze(-1) - b[..., c].unsqueeze(-2)
+        d = diff * diff if d is None else d.add_(diff * diff)
+    return d
+
+
+def _fps_torch(xyz: Tensor, n: int) -> Tensor:
+    """FPS with torch ops: one row of distances per step (the kernels' arithmetic)."""
     b, m, _ = xyz.shape
     flat = xyz.reshape(b * m, 3)
     offset = torch.arange(b, device=xyz.device) * m
     far = torch.zeros(b, dtype=torch.long, device=xyz.device)
     picks = [far]
     mind = torch.full((b, m), float("inf"), dtype=xyz.dtype, device=xyz.device)
-    for i in range(n - 1):
-        c = flat.index_select(0, far + offset).unsqueeze(1)
-        mind = torch.minimum(mind, (xyz - c).pow(2).sum(-1))
+    for _ in range(n - 1):
+        c = flat.index_select(0, far + offset)
+        mind = torch.minimum(mind, neighbour_distance(xyz, c.unsqueeze(1)).squeeze(-1))
         far = mind.argmax(1)
         picks.append(far)
     return torch.stack(picks, 1)
 
 
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore", DeprecationWarning)
-    _fps_dense = torch.jit.script(_fps_dense)
-    _fps_rows = torch.jit.script(_fps_rows)
-
-
 def farthest_point_sample(xyz: Tensor, n: int) -> Tensor:
     """Indices (B, n) long of a farthest point sampling of `xyz` (B, N, 3), starting at point 0.
 
-    Deterministic. Repeated points are harmless (distance 0, never NaN). When n > N, or when fewer
-    than n distinct points exist, indices repeat: after N picks the FPS order is cycled.
-    Prefixes are nested: fps(x, n)[:, :m] == fps(x, m).
+    Deterministic (ties: the lowest index). Repeated points are harmless (distance 0, never NaN).
+    When n > N, or when fewer than n distinct points exist, indices repeat: after N picks the FPS
+    order is cycled. Prefixes are nested: fps(x, n)[:, :m] == fps(x, m).
     """
     if xyz.dim() != 3 or xyz.shape[-1] != 3:
         raise ValueError(f"farthest_point_sample expects (B, N, 3), got {tuple(xyz.shape)}")
@@ -68,8 +84,11 @@ def farthest_point_sample(xyz: Tensor, n: int) -> Tensor:
         return torch.zeros(b, max(n, 0), dtype=torch.long, device=xyz.device)
     k = min(n, m)
     with torch.no_grad():
-        x = xyz.detach().float()
-        idx = _fps_dense(x, k) if b * m * m <= _FPS_DENSE_LIMIT else _fps_rows(x, k)
+        if _compiled(xyz):
+            from . import kernels
+            idx = torch.from_numpy(kernels.fps(_as_numpy(xyz), k))
+        else:
+            idx = _fps_torch(xyz.detach().float(), k)
     if n > m:
         reps = -(-n // m)
         idx = idx.repeat(1, reps)[:, :n]
@@ -106,12 +125,9 @@ def knn_graph(points: Tensor, k: int, margin: float | None = None) -> Tensor:
     With `margin`, the x-sorted window search of `window_knn` (exact for points whose k-th neighbour
     is within `margin`); without, brute force over all pairs.
     """
-    with torch.no_grad():
-        if margin is not None:
-            return window_knn(points, points, k, margin, block=32, exclude_self=True)[1]
-        d = square_distance(points, points)
-        d.diagonal(dim1=1, dim2=2).fill_(float("inf"))
-        return d.topk(k, dim=-1, largest=False, sorted=False).indices
+    if margin is not None:
+        return window_knn(points, points, k, margin, block=32, exclude_self=True)[1]
+    return _nearest_k(points, points, min(k, points.shape[1] - 1), None, 0, exclude_self=True)[1]
 
 
 def neighbour_mean(x: Tensor, nbr_flat: Tensor, k: int) -> Tensor:
@@ -124,24 +140,17 @@ def neighbour_mean(x: Tensor, nbr_flat: Tensor, k: int) -> Tensor:
 def ball_group(centers: Tensor, points: Tensor, radius: float, m: int, window: bool = False) -> Tensor:
     """Indices (B, Q, m) of the m nearest `points` of each center, those farther than `radius` replaced by
     the nearest one (PointNet++ ball-query padding). `window`: x-sorted window search with margin
-    `radius` (`window_knn`; exact inside the ball); else brute force in row chunks that stay in cache."""
-    with torch.no_grad():
-        b, q, _ = centers.shape
-        n = points.shape[1]
-        mm = min(m, n)
-        if window:
-            dist, nn = window_knn(centers, points, mm, radius, block=32)
-            idx = torch.where(dist > radius * radius, nn[..., :1], nn)
-            return idx if mm == m else torch.cat([idx, idx[..., :1].expand(b, q, m - mm)], -1)
-        rows = max(16, _CHUNK_ENTRIES // max(b * n, 1))
-        out = []
-        for s in range(0, q, rows):
-            dist, nn = square_distance(centers[:, s:s + rows], points).topk(mm, dim=-1, largest=False, sorted=True)
-            out.append(torch.where(dist > radius * radius, nn[..., :1], nn))
-        idx = torch.cat(out, 1) if len(out) > 1 else out[0]
-        if mm < m:
-            idx = torch.cat([idx, idx[..., :1].expand(b, q, m - mm)], -1)
-        return idx
+    `radius` (`window_knn`; exact inside the ball); else over all points."""
+    b, q, _ = centers.shape
+    mm = min(m, points.shape[1])
+    if window:
+        dist, nn = window_knn(centers, points, mm, radius, block=32)
+    else:
+        dist, nn = _nearest_k(centers, points, mm, None, 0, exclude_self=False)
+    idx = torch.where(dist > radius * radius, nn[..., :1], nn)
+    if mm < m:
+        idx = torch.cat([idx, idx[..., :1].expand(b, q, m - mm)], -1)
+    return idx
 
 
 def smallest_k(d: Tensor, k: int, group: int = 8) -> tuple[Tensor, Tensor]:
@@ -168,53 +177,84 @@ def window_knn(query: Tensor, ref: Tensor, k: int, margin: float, block: int = 6
     """k nearest `ref` points of every `query` point: (squared distances, indices), each (B, Q, k), sorted.
 
     Both clouds are sorted along x (the vehicle's long axis); each block of `block` consecutive sorted
-    queries searches only the ref points whose x lies within `margin` of the block's x-range (window
-    width = the largest such count in the batch, computed per call). Exact for every query whose k-th
-    neighbour is within `margin` (so exact for ball queries of radius <= margin); otherwise the
-    neighbours are the nearest inside the window. `exclude_self` (query is ref) drops the point itself.
+    queries searches only the ref points whose x lies within `margin` of the block's x-range [lo, hi).
+    Exact for every query whose k-th neighbour is within `margin` (so exact for ball queries of radius
+    <= margin); otherwise the neighbours are the nearest inside the window, and slots the window cannot
+    fill hold distance inf and the ref point at its start. `exclude_self` (query is ref) drops the point
+    itself. Tiny clouds (Q*N <= 4 block^2 or N <= 2 block) are searched whole.
     """
+    q, n = query.shape[1], ref.shape[1]
+    kk = min(k, n - 1 if exclude_self else n)
+    tiny = q * n <= 4 * block * block or n <= 2 * block
+    return _nearest_k(query, ref, kk, None if tiny else margin, block, exclude_self)
+
+
+def _nearest_k(query: Tensor, ref: Tensor, k: int, margin: float | None, block: int,
+               exclude_self: bool) -> tuple[Tensor, Tensor]:
+    """k nearest ref points per query over the whole ref cloud (margin None) or the x-windows of `window_knn`."""
     with torch.no_grad():
-        b, q, _ = query.shape
-        n = ref.shape[1]
-        kk = min(k, n - 1 if exclude_self else n)
-        if q * n <= 4 * block * block or n <= 2 * block:   # tiny clouds: brute force
-            d = square_distance(query, ref)
-            if exclude_self:
-                d.diagonal(dim1=1, dim2=2).fill_(float("inf"))
-            return d.topk(kk, dim=-1, largest=False, sorted=True)
-        rx, rperm = ref[..., 0].sort(dim=1)
+        if _compiled(query):
+            from . import kernels
+            dist, idx = kernels.knn(_as_numpy(query), _as_numpy(ref), k, float(margin or 0.0), max(block, 1),
+                                    margin is not None, exclude_self)
+            return torch.from_numpy(dist), torch.from_numpy(idx)
+        if margin is None:
+            return _brute_knn_torch(query, ref, k, exclude_self)
+        return _window_knn_torch(query, ref, k, margin, block, exclude_self)
+
+
+def _brute_knn_torch(query: Tensor, ref: Tensor, k: int, exclude_self: bool) -> tuple[Tensor, Tensor]:
+    b, q, _ = query.shape
+    rows = max(16, _CHUNK_ENTRIES // max(b * ref.shape[1], 1))
+    dists, idxs = [], []
+    for s in range(0, q, rows):    # row chunks keep the distance matrix in cache (elementwise: same values)
+        d = neighbour_distance(query[:, s:s + rows], ref)
         if exclude_self:
-            qx, qperm = rx, rperm
-        else:
-            qx, qperm = query[..., 0].sort(dim=1)
-        nb = -(-q // block)
-        pad = nb * block - q
-        if pad:
-            qperm = torch.cat([qperm, qperm[:, -1:].expand(b, pad)], 1)
-            qx = torch.cat([qx, qx[:, -1:].expand(b, pad)], 1)
-        qs = gather_points(query, qperm)                                   # (B, nb*block, 3) sorted by x
-        rs = gather_points(ref, rperm)
-        lo = torch.searchsorted(rx, (qx[:, ::block] - margin).contiguous())
-        hi = torch.searchsorted(rx, (qx[:, block - 1::block] + margin).contiguous(), right=True)
-        w = int(min(max(int((hi - lo).max()), kk + (1 if exclude_self else 0)), n))
-        start = lo.clamp(max=n - w)                                        # (B, nb)
-        cand = start.unsqueeze(-1) + torch.arange(w, device=ref.device)    # (B, nb, w) sorted-ref positions
-        cpts = gather_points(rs, cand).view(b * nb, w, 3)
-        d = square_distance(qs.view(b * nb, block, 3), cpts)               # (B*nb, block, w)
-        # only [lo, hi) counts: the result of a cloud must not depend on the other clouds of the batch
-        outside = (cand < lo.unsqueeze(-1)) | (cand >= hi.unsqueeze(-1))
-        d.masked_fill_(outside.view(b * nb, 1, w), float("inf"))
-        if exclude_self:
-            col = torch.arange(nb * block, device=ref.device).clamp(max=q - 1).view(1, nb, block) - start.unsqueeze(-1)
-            d.view(-1, w).scatter_(1, col.reshape(-1, 1), float("inf"))
-        dist, j = smallest_k(d, kk)                                        # (B*nb, block, kk)
-        pos = torch.gather(cand.view(b * nb, 1, w).expand(-1, block, -1), 2, j).view(b, nb * block, kk)
-        # fewer than k candidates in the window: fall back to the ref point nearest in x to the block
-        fallback = lo.clamp(max=n - 1).view(b, nb, 1, 1).expand(b, nb, block, kk).reshape(b, nb * block, kk)
-        pos = torch.where(torch.isinf(dist).view(b, nb * block, kk), fallback, pos)
-        idx = torch.gather(rperm, 1, pos.view(b, -1)).view(b, nb * block, kk)
-        dist = dist.view(b, nb * block, kk)
-        # undo the query sort (padding rows are duplicates of the last query and are dropped)
-        inv = torch.empty(b, q, dtype=torch.long, device=ref.device)
-        inv.scatter_(1, qperm[:, :q], torch.arange(q, device=ref.device).expand(b, q))
-        return gather_points(dist, inv), gather_points(idx, inv)
+            rows_here = torch.arange(s, s + d.shape[1], device=d.device)
+            d[:, torch.arange(d.shape[1], device=d.device), rows_here] = float("inf")
+        dist, nn = d.topk(k, dim=-1, largest=False, sorted=True)
+        dists.append(dist)
+        idxs.append(nn)
+    return torch.cat(dists, 1), torch.cat(idxs, 1)
+
+
+def _window_knn_torch(query: Tensor, ref: Tensor, k: int, margin: float, block: int,
+                      exclude_self: bool) -> tuple[Tensor, Tensor]:
+    b, q, _ = query.shape
+    n = ref.shape[1]
+    rx, rperm = ref[..., 0].sort(dim=1, stable=True)
+    if exclude_self:
+        qx, qperm = rx, rperm
+    else:
+        qx, qperm = query[..., 0].sort(dim=1, stable=True)
+    nb = -(-q // block)
+    pad = nb * block - q
+    if pad:
+        qperm = torch.cat([qperm, qperm[:, -1:].expand(b, pad)], 1)
+        qx = torch.cat([qx, qx[:, -1:].expand(b, pad)], 1)
+    qs = gather_points(query, qperm)                                   # (B, nb*block, 3) sorted by x
+    rs = gather_points(ref, rperm)
+    lo = torch.searchsorted(rx, (qx[:, ::block] - margin).contiguous())
+    hi = torch.searchsorted(rx, (qx[:, block - 1::block] + margin).contiguous(), right=True)
+    w = int(min(max(int((hi - lo).max()), k + (1 if exclude_self else 0)), n))
+    start = lo.clamp(max=n - w)                                        # (B, nb)
+    cand = start.unsqueeze(-1) + torch.arange(w, device=ref.device)    # (B, nb, w) sorted-ref positions
+    cpts = gather_points(rs, cand).view(b * nb, w, 3)
+    d = neighbour_distance(qs.view(b * nb, block, 3), cpts)            # (B*nb, block, w)
+    # only [lo, hi) counts: the result of a cloud must not depend on the other clouds of the batch
+    outside = (cand < lo.unsqueeze(-1)) | (cand >= hi.unsqueeze(-1))
+    d.masked_fill_(outside.view(b * nb, 1, w), float("inf"))
+    if exclude_self:
+        col = torch.arange(nb * block, device=ref.device).clamp(max=q - 1).view(1, nb, block) - start.unsqueeze(-1)
+        d.view(-1, w).scatter_(1, col.reshape(-1, 1), float("inf"))
+    dist, j = smallest_k(d, k)                                         # (B*nb, block, k)
+    pos = torch.gather(cand.view(b * nb, 1, w).expand(-1, block, -1), 2, j).view(b, nb * block, k)
+    # fewer than k candidates in the window: the ref point at the window's start
+    fallback = lo.clamp(max=n - 1).view(b, nb, 1, 1).expand(b, nb, block, k).reshape(b, nb * block, k)
+    pos = torch.where(torch.isinf(dist).view(b, nb * block, k), fallback, pos)
+    idx = torch.gather(rperm, 1, pos.view(b, -1)).view(b, nb * block, k)
+    dist = dist.view(b, nb * block, k)
+    # undo the query sort (padding rows are duplicates of the last query and are dropped)
+    inv = torch.empty(b, q, dtype=torch.long, device=ref.device)
+    inv.scatter_(1, qperm[:, :q], torch.arange(q, device=ref.device).expand(b, q))
+    return gather_points(dist, inv), gather_points(idx, inv)

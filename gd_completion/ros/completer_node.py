@@ -14,7 +14,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import Header
+from std_msgs.msg import Float64, Header
 from visualization_msgs.msg import MarkerArray
 
 from gd_completion.errors import GDCompletionError, PointCloud2Error
@@ -33,8 +33,9 @@ DIAGNOSTICS_PERIOD_S = 1.0
 COUNTER_KEYS = (
     "clouds_received", "boxes_received", "frames_published", "vehicles_completed", "ignored_labels",
     "skipped_degenerate_box", "skipped_too_few_points", "boxes_wrong_frame", "boxes_without_header",
-    "bad_cloud", "nonfinite_points", "drop_superseded", "errors",
+    "bad_cloud", "nonfinite_points", "drop_superseded", "frames_without_subscribers", "errors",
 )
+PROCESSING_TIME_TOPIC = "~/debug/processing_time_ms"
 
 
 def resolve_boxes_type(boxes_type: str) -> tuple[type, Callable[..., BoxSet], str]:
@@ -82,6 +83,7 @@ class CompleterNode(Node):
 
         self._output_pub = self.create_publisher(PointCloud2, p.output_topic, QoSProfile(depth=5))
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
+        self._time_pub = self.create_publisher(Float64, PROCESSING_TIME_TOPIC, QoSProfile(depth=10))
         self._worker = threading.Thread(target=self._work, name="completer-worker", daemon=True)
         self._worker.start()
         self.create_subscription(PointCloud2, p.cloud_topic, self._on_cloud, qos_profile_sensor_data)
@@ -157,6 +159,10 @@ class CompleterNode(Node):
                                         throttle_duration_sec=WARN_THROTTLE_S)
 
     def _complete(self, pair: Pair, ready_at: float) -> None:
+        if self._output_pub.get_subscription_count() == 0:   # lazy: no model work that nobody receives
+            self._count("frames_without_subscribers")
+            return
+        started = time.perf_counter()
         header, points = pair.cloud
         frame_id = header.frame_id
         boxes, wrong_frame = pair.boxes.split_by_frame(frame_id)
@@ -176,6 +182,7 @@ class CompleterNode(Node):
         if self._stopping.is_set():
             return
         self._output_pub.publish(msg)
+        self._time_pub.publish(Float64(data=(time.perf_counter() - started) * 1e3))
         done = time.monotonic()
         with self._lock:
             self.counts["frames_published"] += 1
@@ -227,6 +234,7 @@ class CompleterNode(Node):
         self._stopping.set()
         self._slot.close()
         self._worker.join(timeout=10.0)
+        self.completer.close()
         self.destroy_node()
 
 
