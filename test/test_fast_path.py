@@ -1,0 +1,137 @@
+"""The compiled CPU kernels against the torch path, and batch independence of every result."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gd_completion.model import chamfer_l2, farthest_point_sample
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.model.ops import _nearest_k, knn_graph, torch_kernels, window_knn
+from gd_completion.pipeline import VehicleCompleter
+from gd_completion.synth.dataset import build_dataset
+
+
+@pytest.fixture(scope="module")
+def scans() -> dict:
+    """64 simulated lidar scans of procedural vehicles, cropped and normalised as the node does."""
+    return build_dataset(64, seed=8080, n_input=1024, n_gt=2048)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model(DEFAULT_WEIGHTS)
+
+
+def _same_up_to_exact_ties(query: torch.Tensor, ref: torch.Tensor, fast: tuple[torch.Tensor, torch.Tensor],
+                           reference: tuple[torch.Tensor, torch.Tensor]) -> None:
+    """Distances bitwise equal, and each path's indices really are at those distances: where the indices
+    differ, the two candidates are at exactly the same distance (an exact tie)."""
+    (d_fast, i_fast), (d_ref, i_ref) = fast, reference
+    assert torch.equal(d_fast, d_ref)
+    finite = torch.isfinite(d_ref)
+    for idx in (i_fast, i_ref):
+        picked = torch.gather(ref, 1, idx.reshape(idx.shape[0], -1, 1).expand(-1, -1, 3)).view(idx.shape + (3,))
+        diff = query.unsqueeze(2) - picked
+        d = diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1] + diff[..., 2] * diff[..., 2]
+        assert torch.equal(d[finite], d_ref[finite])
+    assert (i_fast == i_ref).float().mean() > 0.5     # ties are the exception, not the rule
+
+
+def test_kernels_match_torch_searches(scans):
+    x = torch.from_numpy(scans["partial"][:32])
+    g = torch.Generator().manual_seed(1)
+    queries = torch.cat([x, x + 0.01 * torch.randn(x.shape, generator=g)], 1)   # 2048 points, like P_g
+    fps = farthest_point_sample(x, 512)
+    with torch_kernels():
+        assert torch.equal(fps, farthest_point_sample(x, 512))
+    cases = [
+        (queries, queries, dict(k=8, margin=0.08, exclude_self=True)),   # the kNN graph over P_g
+        (queries, x, dict(k=8, margin=0.05)),                            # the ball query at scale 1
+        (queries, x[:, :256], dict(k=8, margin=0.1)),
+        (queries[:, :60], x[:, :40], dict(k=8, margin=0.05)),           # tiny: searched whole
+    ]
+    for query, ref, options in cases:
+        fast = window_knn(query, ref, block=32, **options)
+        with torch_kernels():
+            _same_up_to_exact_ties(query, ref, fast, window_knn(query, ref, block=32, **options))
+    for query, ref, exclude_self in ((queries[:4], queries[:4], True), (queries[:4], x[:4, :64], False)):
+        fast = _nearest_k(query, ref, 8, None, 0, exclude_self)                # brute force: graph, ball at 4r
+        with torch_kernels():
+            _same_up_to_exact_ties(query, ref, fast, _nearest_k(query, ref, 8, None, 0, exclude_self))
+
+
+def test_kernel_window_edge_cases():
+    # fewer candidates in the window than k: distance inf and the ref point at the window's start, in both paths
+    ref = torch.tensor([[[0.0, 0, 0], [0.01, 0, 0]] + [[5.0 + i, 0, 0] for i in range(200)]])
+    query = torch.tensor([[[0.003, 0, 0]] * 70])
+    fast = window_knn(query, ref, 4, 0.05, block=32)
+    with torch_kernels():
+        _same_up_to_exact_ties(query, ref, fast, window_knn(query, ref, 4, 0.05, block=32))
+    assert torch.isinf(fast[0][0, 0, 2:]).all() and (fast[1][0, :, 2:] == 0).all()
+    # duplicates and one-point clouds
+    same = torch.zeros(1, 100, 3)
+    assert farthest_point_sample(same, 8)[0].tolist() == [0] * 8
+    assert knn_graph(torch.zeros(1, 1, 3), 4).shape == (1, 1, 0)
+
+
+def test_fast_path_equals_torch_path_on_32_scans(scans, model):
+    x = torch.from_numpy(scans["partial"][:32])
+    gt = torch.from_numpy(scans["complete"][:32])
+    with torch.inference_mode():
+        fast = model(x).completion
+        with torch_kernels():
+            reference = model(x).completion
+    assert (fast - reference).abs().max().item() <= 1e-3
+    cd_fast = chamfer_l2(fast, gt).mean().item() * 1e4
+    cd_ref = chamfer_l2(reference, gt).mean().item() * 1e4
+    assert f"{cd_fast:.3g}" == f"{cd_ref:.3g}", (cd_fast, cd_ref)
+
+
+def test_vehicle_alone_equals_vehicle_among_63_others(scans, model):
+    partials = list(scans["partial"])        # 64 vehicles
+    together = VehicleCompleter(model, threads=2)
+    try:
+        frame = together.complete_normalized(partials)
+    finally:
+        together.close()
+    alone = VehicleCompleter(model, threads=1)
+    for i in (0, 17, 40, 63):
+        assert np.array_equal(alone.complete_normalized([partials[i]])[0], frame[i])
+    with torch.inference_mode():              # one batched forward: the same bits as well
+        batched = model(torch.from_numpy(scans["partial"])).completion.numpy()
+    assert np.array_equal(batched, frame)
+
+
+def test_torch_path_is_batch_independent(scans, model):
+    x = torch.from_numpy(scans["partial"][:6])   # more than 4 clouds: once a switch of FPS arithmetic
+    with torch.inference_mode(), torch_kernels():
+        both = model(x).completion
+        for i in (0, 5):
+            assert torch.equal(model(x[i:i + 1]).completion, both[i:i + 1])
+
+
+def test_cpu_tensors_take_the_kernels_and_the_switch_restores(monkeypatch, scans):
+    from gd_completion.model import ops
+
+    def fail(*args, **kwargs):
+        raise AssertionError("torch path used")
+    x = torch.from_numpy(scans["partial"][:2])
+    monkeypatch.setattr(ops, "_fps_torch", fail)
+    monkeypatch.setattr(ops, "_window_knn_torch", fail)
+    farthest_point_sample(x, 64)
+    knn_graph(x, 8, 0.08)
+    with pytest.raises(AssertionError, match="torch path used"), torch_kernels():
+        farthest_point_sample(x, 64)
+    knn_graph(x, 8, 0.08)                         # the context restored the kernels
+
+
+def test_torch_path_still_trains(tmp_path):
+    from test_model import TINY
+    from test_train import _data, _settings
+
+    from gd_completion.train import train
+    with torch_kernels():
+        result = train(TINY, _data(8, 0), _data(4, 1), tmp_path, _settings(epochs=4, generation_epochs=4))
+    history = result.history
+    assert result.epochs_done == 4 and history[-1]["train_total"] < 0.8 * history[0]["train_total"]
