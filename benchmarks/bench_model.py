@@ -1,40 +1,32 @@
-"""Benchmark GGDNet inference (eval, inference_mode) per vehicle at batch 1 and 16, and a training step.
+"""Benchmark GGD-Net inference: the torch path against the compiled fast path, in one run, same weights.
 
-Usage: python benchmarks/bench_model.py [--threads N] [--repeats R] [--train] [--stages] [--profile]
-Reports the minimum over repeats (the machine is shared; the minimum is the least disturbed run).
+Usage: python benchmarks/bench_model.py [--repeats R] [--stages] [--train] [--profile] [--model PATH]
+
+Rows (ms per vehicle, eval + inference_mode, simulated lidar scans cropped and normalised as the node does):
+batch 1 with 1 and 2 torch threads, and a 16-vehicle frame over both cores (`VehicleCompleter` with one
+vehicle thread per core, one torch thread each). The two paths are timed interleaved (A, B, A, B, ...)
+so machine noise hits both alike; the min and the median over repeats are printed, and the fast/torch
+ratio of the medians. The model's own dense GEMMs (every addmm/mm of one forward, shapes recorded by the
+profiler) are replayed and timed in the same run: the floor that no neighbour-search work can go under.
 """
 from __future__ import annotations
 
 import argparse
 import statistics
 import time
+from collections import Counter
+from contextlib import nullcontext
+from typing import Callable
 
+import numpy as np
 import torch
 
 from gd_completion.model import GGDConfig, GGDNet, ggd_loss
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
-from gd_completion.model.ops import farthest_point_sample, gather_points, knn_graph
+from gd_completion.model.ops import farthest_point_sample, gather_points, knn_graph, torch_kernels
+from gd_completion.pipeline import VehicleCompleter, default_threads
 
-
-CLOCK = time.perf_counter
-
-
-def _times(fn, repeats: int, warmup: int = 2) -> list[float]:
-    for _ in range(warmup):
-        fn()
-    out = []
-    for _ in range(repeats):
-        t = CLOCK()
-        fn()
-        out.append(CLOCK() - t)
-    return out
-
-
-def _cloud(b: int, n: int) -> torch.Tensor:
-    g = torch.Generator().manual_seed(0)
-    x = torch.randn(b, n, 3, generator=g)
-    x = x / x.norm(dim=-1, keepdim=True)          # points on an ellipsoid surface, vehicle-sized
-    return x * torch.tensor([0.5, 0.22, 0.2])
+PATHS = {"torch": torch_kernels, "fast": nullcontext}
 
 
 def _vehicles(b: int, n: int) -> torch.Tensor:
@@ -43,86 +35,156 @@ def _vehicles(b: int, n: int) -> torch.Tensor:
     return torch.from_numpy(build_dataset(b, seed=424242, n_input=n)["partial"])
 
 
-def stages(model: GGDNet, b: int, repeats: int) -> None:
-    """Per-stage latency (ms per vehicle)."""
+def _interleaved(fns: dict[str, Callable[[], object]], repeats: int, per: int) -> dict[str, list[float]]:
+    """ms per vehicle of each function over `repeats` rounds, one call of each per round (after a warm-up)."""
+    for fn in fns.values():
+        fn()
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(1e3 * (time.perf_counter() - start) / per)
+    return times
+
+
+def _forward(model: GGDNet, x: torch.Tensor, path: str) -> Callable[[], object]:
+    def run() -> object:
+        with torch.inference_mode(), PATHS[path]():
+            return model(x)
+    return run
+
+
+def _frame(completer: VehicleCompleter, partials: list[np.ndarray], path: str) -> Callable[[], object]:
+    def run() -> object:
+        with PATHS[path]():
+            return completer.complete_normalized(partials)
+    return run
+
+
+def gemm_shapes(model: GGDNet, x: torch.Tensor) -> Counter:
+    """(M, K, N, has bias) -> count for every dense addmm / mm of one forward."""
+    from torch.profiler import ProfilerActivity, profile
+    with torch.inference_mode(), profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        model(x)
+    shapes: Counter = Counter()
+    for event in prof.events():
+        dims = [s for s in event.input_shapes if s]
+        if event.name == "aten::addmm":
+            (_, (m, k), (_, n)) = dims[:3]
+            shapes[(m, k, n, True)] += 1
+        elif event.name == "aten::mm":
+            ((m, k), (_, n)) = dims[:2]
+            shapes[(m, k, n, False)] += 1
+    return shapes
+
+
+def gemm_time_ms(shapes: Counter, repeats: int) -> float:
+    """Time of the recorded GEMMs replayed on random operands (min over repeats), ms."""
+    g = torch.Generator().manual_seed(0)
+    operands = [(torch.randn(m, k, generator=g), torch.randn(k, n, generator=g), torch.randn(n, generator=g),
+                 bias, count) for (m, k, n, bias), count in shapes.items()]
+
+    def replay() -> None:
+        for a, b, c, bias, count in operands:
+            for _ in range(count):
+                torch.addmm(c, a, b) if bias else torch.mm(a, b)
+    replay()
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        replay()
+        best = min(best, time.perf_counter() - start)
+    return best * 1e3
+
+
+def stages(model: GGDNet, x: torch.Tensor, repeats: int) -> None:
+    """Per-stage latency of the fast path, ms per vehicle at batch 1, one thread."""
     cfg = model.config
-    x = _vehicles(b, cfg.num_input)
     with torch.inference_mode():
         n = cfg.num_input
-        longest = min(n, max([cfg.num_control, n // 2, n // 8] + [n // (s * s) for s in cfg.ball_scales if s > 1]))
-        order = farthest_point_sample(x, longest)
+        order = model._order(x)
         code = model.encoder(x, order)
         coarse = model.decoder(code)
         pg = torch.cat([gather_points(x, order[:, :cfg.num_control]), coarse], 1)
         margin = cfg.knn_margin if cfg.window_search else None
         knn = knn_graph(pg, cfg.knn_k, margin)
-        loc = model.local(pg, x, order)
-        feat = torch.cat([loc, pg, torch.zeros(b, pg.shape[1], 2)], -1)
+        idx = model.local.group(pg, x, order)
+        feat = torch.cat([model.local(pg, x, order), pg, torch.zeros(1, pg.shape[1], 2)], -1)
         parts = {
-            "fps": lambda: farthest_point_sample(x, longest),
+            "fps": lambda: farthest_point_sample(x, order.shape[1]),
             "encoder": lambda: model.encoder(x, order),
             "decoder": lambda: model.decoder(code),
             "knn graph": lambda: knn_graph(pg, cfg.knn_k, margin),
-            "local features": lambda: model.local(pg, x, order),
+            "ball groups": lambda: model.local.group(pg, x, order),
+            "local MLP": lambda: torch.cat([model.local._features(pg[:, s:s + 1024], x, idx[:, s:s + 1024])
+                                            for s in range(0, pg.shape[1], 1024)], 1),
             "G-ResNet": lambda: model.deform(feat, code, knn),
-            "total": lambda: model(x),
         }
-        for name, fn in parts.items():
-            print(f"  batch {b:2d} {name:15s} {1000 * min(_times(fn, repeats)) / b:7.2f} ms/vehicle")
+        times = _interleaved(parts, repeats, 1)
+    for name, ts in times.items():
+        print(f"  stage {name:12s} {min(ts):7.2f} ms (min) {statistics.median(ts):7.2f} (median)  [n={n}]")
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch default)")
-    ap.add_argument("--repeats", type=int, default=10)
-    ap.add_argument("--train", action="store_true", help="also time a training step at batch 16")
-    ap.add_argument("--stages", action="store_true", help="per-stage breakdown")
-    ap.add_argument("--profile", action="store_true", help="torch.profiler table at batch 16")
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=12)
+    ap.add_argument("--stages", action="store_true", help="per-stage breakdown of the fast path")
+    ap.add_argument("--train", action="store_true", help="also time a training step at batch 16 (both paths)")
+    ap.add_argument("--profile", action="store_true", help="torch.profiler table of the fast path at batch 1")
     ap.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
     ap.add_argument("--untrained", action="store_true",
-                    help="a randomly initialised model (its P_s collapses to a blob: worst case for the x-window "
-                         "neighbour search) instead of the checkpoint")
-    ap.add_argument("--cpu-time", action="store_true",
-                    help="report process CPU time instead of wall time (with --threads 1: the latency without "
-                         "waiting for a core on a shared machine)")
+                    help="randomly initialised weights (a collapsed P_s: the worst case for the x-window searches)")
     args = ap.parse_args()
-    global CLOCK
-    if args.cpu_time:
-        CLOCK = time.process_time
-    if args.threads:
-        torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    if args.untrained:
-        model = GGDNet(GGDConfig()).eval()
-    else:
-        model = load_model(args.model or DEFAULT_WEIGHTS)
+    model = GGDNet(GGDConfig()).eval() if args.untrained else load_model(args.model or DEFAULT_WEIGHTS)
     cfg = model.config
-    print(f"GGDNet {model.num_parameters():,} parameters, torch {torch.__version__}, {torch.get_num_threads()} threads")
-    for b, reps in ((1, args.repeats), (16, max(3, args.repeats // 3))):  # stages: batch 16 unchunked
-        x = _vehicles(b, cfg.num_input)
-        with torch.inference_mode():
-            ts = _times(lambda: model(x), reps)
-        print(f"batch {b:2d}: {1000 * min(ts) / b:7.2f} ms/vehicle (min), {1000 * statistics.median(ts) / b:7.2f} (median)")
-        if args.stages:
-            stages(model, b, reps)
+    cores = default_threads()
+    print(f"GGDNet {model.num_parameters():,} parameters, torch {torch.__version__}, {cores} cores; "
+          f"ms per vehicle, min / median of {args.repeats} interleaved rounds")
+    frame = _vehicles(16, cfg.num_input)
+    one = frame[:1]
+    rows: dict[str, dict[str, list[float]]] = {}
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        rows[f"batch 1, {threads} thread{'s' if threads > 1 else ''}"] = _interleaved(
+            {p: _forward(model, one, p) for p in PATHS}, args.repeats, 1)
+    torch.set_num_threads(1)
+    completer = VehicleCompleter(model, threads=cores)
+    partials = list(frame.numpy())
+    rows[f"16-vehicle frame, {cores} vehicle threads"] = _interleaved(
+        {p: _frame(completer, partials, p) for p in PATHS}, max(3, args.repeats // 2), len(partials))
+    completer.close()
+    for name, times in rows.items():
+        ratio = statistics.median(times["fast"]) / statistics.median(times["torch"])
+        cells = "  ".join(f"{p} {min(t):6.2f} / {statistics.median(t):6.2f}" for p, t in times.items())
+        print(f"{name:34s} {cells}  fast/torch {ratio:.2f}")
+    gemm = gemm_time_ms(gemm_shapes(model, one), args.repeats)
+    print(f"dense GEMMs of one vehicle (the model's addmm/mm shapes replayed, 1 thread): {gemm:.2f} ms")
+    if args.stages:
+        stages(model, one, args.repeats)
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
-        x = _vehicles(16, cfg.num_input)
         with torch.inference_mode(), profile(activities=[ProfilerActivity.CPU]) as prof:
-            model(x)
+            model(one)
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15))
     if args.train:
         model.train()
         opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-        x, gt = _cloud(16, cfg.num_input), _cloud(16, cfg.num_output) * 1.02
+        x = _vehicles(16, cfg.num_input)
+        gt = x.repeat(1, cfg.num_output // cfg.num_input + 1, 1)[:, :cfg.num_output] * 1.02
 
-        def step() -> None:
-            loss = ggd_loss(model(x), gt, lam=3.0)["total"]
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        ts = _times(step, 3, warmup=1)
-        print(f"training step, batch 16: {min(ts):.2f} s (min), {statistics.median(ts):.2f} s (median)")
+        def step(path: str) -> Callable[[], None]:
+            def run() -> None:
+                with PATHS[path]():
+                    loss = ggd_loss(model(x), gt, lam=3.0)["total"]
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+            return run
+        times = _interleaved({p: step(p) for p in PATHS}, 3, 1)
+        print("training step, batch 16, 1 thread: " + ", ".join(
+            f"{p} {min(t) / 1e3:.2f} s (min)" for p, t in times.items()))
 
 
 if __name__ == "__main__":

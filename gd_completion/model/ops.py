@@ -17,6 +17,8 @@ from torch import Tensor
 
 # Distance entries per chunk in brute-force ball queries (keeps the matrix in cache).
 _CHUNK_ENTRIES = 1 << 19
+# Above this many distance entries the torch FPS computes one row of distances per step.
+_FPS_DENSE_LIMIT = 1 << 22
 _COMPILED = {"enabled": True}
 
 
@@ -55,16 +57,21 @@ def neighbour_distance(a: Tensor, b: Tensor) -> Tensor:
 
 
 def _fps_torch(xyz: Tensor, n: int) -> Tensor:
-    """FPS with torch ops: one row of distances per step (the kernels' arithmetic)."""
+    """FPS with torch ops, 3 small ops per step: rows of a precomputed distance matrix, or (large clouds)
+    one row computed per step; the same values either way (the kernels' elementwise arithmetic)."""
     b, m, _ = xyz.shape
-    flat = xyz.reshape(b * m, 3)
     offset = torch.arange(b, device=xyz.device) * m
+    dense = neighbour_distance(xyz, xyz).view(b * m, m) if b * m * m <= _FPS_DENSE_LIMIT else None
+    flat = xyz.reshape(b * m, 3)
     far = torch.zeros(b, dtype=torch.long, device=xyz.device)
     picks = [far]
     mind = torch.full((b, m), float("inf"), dtype=xyz.dtype, device=xyz.device)
     for _ in range(n - 1):
-        c = flat.index_select(0, far + offset)
-        mind = torch.minimum(mind, neighbour_distance(xyz, c.unsqueeze(1)).squeeze(-1))
+        if dense is not None:
+            row = dense.index_select(0, far + offset)
+        else:
+            row = neighbour_distance(xyz, flat.index_select(0, far + offset).unsqueeze(1)).squeeze(-1)
+        mind = torch.minimum(mind, row)
         far = mind.argmax(1)
         picks.append(far)
     return torch.stack(picks, 1)
