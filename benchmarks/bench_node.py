@@ -1,11 +1,13 @@
 """Completer node end to end: publish -> completed message latency, backlog and peak RSS on a busy frame.
 
 A real KITTI frame (000003, ~113k points) plus 19 copies of its measured car placed around the sensor gives a
-~125k-point frame with 20 vehicles, published with fresh stamps at --rate Hz for --duration s to the node
-running in a subprocess (shipped weights). Prints latency p50/p95, how many frames were answered and how
-the rest were accounted for (superseded by a newer frame = bounded latency, no backlog), and the node's VmHWM.
+~125k-point frame with 20 vehicles; `--pandaset N` replays PandaSet-002 frame N instead (Pandar64, every
+annotated cuboid as a box: ~45 vehicles with enough points). The frame is published with fresh stamps at
+--rate Hz for --duration s to the node running in a subprocess (shipped weights). Prints latency p50/p95,
+how many frames were answered and how the rest were accounted for (superseded by a newer frame = bounded
+latency, no backlog), and the node's VmHWM.
 
-    python benchmarks/bench_node.py [--duration 20] [--rate 10] [--vehicles 20] [--num-threads 0]
+    python benchmarks/bench_node.py [--duration 20] [--rate 10] [--vehicles 20] [--pandaset N] [--num-threads 0]
 """
 from __future__ import annotations
 
@@ -28,7 +30,8 @@ from gd_completion.geometry import Box3D, crop_boxes  # noqa: E402
 from kitti_frames import KittiFrame, cloud_msg, read_frame  # noqa: E402
 from ros_live import DOMAIN_ID, Client, NodeProcess, ros_env  # noqa: E402
 
-KITTI = REPO.parent / "shared" / "data" / "kitti-object-sample" / "training"
+SHARED = REPO.parent / "shared" / "data"
+KITTI = SHARED / "kitti-object-sample" / "training"
 
 
 def busy_frame(n_vehicles: int) -> KittiFrame:
@@ -53,6 +56,15 @@ def busy_frame(n_vehicles: int) -> KittiFrame:
     return KittiFrame("busy", np.concatenate(points), boxes)
 
 
+def pandaset_frame(index: int) -> KittiFrame:
+    """PandaSet-002 frame `index` (Pandar64) with all of its cuboids, labels as a detector would name them."""
+    from gd_completion.datasets.pandaset import PandaSetSequence
+
+    frame = PandaSetSequence(SHARED / "pandaset-002").frame(index)[0]
+    points = np.concatenate([frame.xyz, frame.intensity[:, None]], 1).astype(np.float32)
+    return KittiFrame(f"pandaset-{index:02d}", points, frame.boxes)
+
+
 def vm_hwm_kib(pid: int) -> int:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmHWM:"):
@@ -65,10 +77,11 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=20.0)
     ap.add_argument("--rate", type=float, default=10.0)
     ap.add_argument("--vehicles", type=int, default=20)
-    ap.add_argument("--num-threads", type=int, default=0, help="node num_threads (0 = torch default)")
+    ap.add_argument("--pandaset", type=int, default=None, metavar="N", help="replay PandaSet-002 frame N instead")
+    ap.add_argument("--num-threads", type=int, default=0, help="node num_threads (0 = one vehicle thread per core)")
     args = ap.parse_args()
 
-    frame = busy_frame(args.vehicles)
+    frame = busy_frame(args.vehicles) if args.pandaset is None else pandaset_frame(args.pandaset)
     tmp = Path(tempfile.mkdtemp(prefix="bench_node_"))
     env = ros_env(tmp)
     import os
@@ -104,17 +117,22 @@ def main() -> None:
         third_p50 = [float(np.median([client.reply_times[s] - sent[s] for s in t]) * 1e3) if len(t) else float("nan")
                      for t in thirds]
         delta = {k: int(diag.get(k, 0) - base.get(k, 0)) for k in diag}
-        print(f"frame: {len(frame.points)} points, {len(frame.boxes)} vehicles; sent {len(sent)} frames at "
+        print(f"frame {frame.index}: {len(frame.points)} points, {len(frame.boxes)} boxes; sent {len(sent)} frames at "
               f"{send_rate:.1f} Hz for {args.duration:.0f} s; node num_threads={args.num_threads}")
         print(f"answered {len(answered)}/{len(sent)} frames ({len(answered) / args.duration:.2f} Hz), "
               f"vehicles completed {delta['vehicles_completed']}")
         if len(lat):
             print(f"end-to-end latency (publish -> completed message received): p50 {np.percentile(lat, 50):.0f} ms, "
-                  f"p95 {np.percentile(lat, 95):.0f} ms, max {lat.max():.0f} ms")
+                  f"p95 {np.percentile(lat, 95):.0f} ms, max {lat.max():.0f} ms; "
+                  f"vehicles completed per answered frame {delta['vehicles_completed'] / len(answered):.1f}")
             print(f"backlog check: p50 latency by thirds of the run {[round(v) for v in third_p50]} ms "
                   "(flat = no backlog growth)")
         print(f"node-side latency (frame paired -> published, recent): p50 {diag['latency_p50_ms']:.0f} ms, "
               f"p95 {diag['latency_p95_ms']:.0f} ms")
+        if client.processing_times:
+            work = np.array(client.processing_times[-len(answered):])
+            print(f"node processing time (~/debug/processing_time_ms, answered frames): p50 {np.median(work):.0f} ms, "
+                  f"p95 {np.percentile(work, 95):.0f} ms")
         accounted = delta["frames_published"] + delta["drop_superseded"] + delta["drop_cloud_no_boxes"] \
             + delta["drop_boxes_no_cloud"] + delta["drop_cloud_overflow"] + int(diag["pending_clouds"])
         print(f"accounting: published {delta['frames_published']} + superseded {delta['drop_superseded']} + "

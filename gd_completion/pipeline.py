@@ -103,7 +103,6 @@ class VehicleCompleter:
         margin: float = 0.1,
         ground_clearance: float = 0.1,
         include_input_points: bool = True,
-        max_batch: int = 32,
         device: str = "cpu",
         threads: int = 1,
     ) -> None:
@@ -114,7 +113,6 @@ class VehicleCompleter:
         self.margin = float(margin)
         self.ground_clearance = float(ground_clearance)
         self.include_input_points = bool(include_input_points)
-        self.max_batch = int(max_batch)
         self.num_input = model.config.num_input
         self.num_output = model.config.num_output
         if threads < 1:
@@ -135,6 +133,13 @@ class VehicleCompleter:
             torch.set_num_threads(1)
         model = load_model(path or DEFAULT_WEIGHTS, device=device)
         return cls(model, device=device, threads=int(num_threads or default_threads()), **options)
+
+    def warm_up(self) -> None:
+        """Complete one synthetic vehicle: compiles the CPU kernels (cached on disk after the first time,
+        seconds before that) so that the first real frame is not the slow one."""
+        rng = np.random.default_rng(0)
+        cloud = (rng.random((self.num_input + 1, 3)) - 0.5) * np.array([1.0, 0.4, 0.35])
+        self.complete_normalized([cloud.astype(np.float32)])
 
     def close(self) -> None:
         """Stop the vehicle threads (idempotent)."""
@@ -172,20 +177,17 @@ class VehicleCompleter:
 
     def complete_normalized(self, partials: Sequence[np.ndarray]) -> np.ndarray:
         """Complete vehicles given in the normalised box frame; returns (B, num_output, 3) float32."""
-        if not partials:
+        if not len(partials):
             return np.zeros((0, self.num_output, 3), np.float32)
-        counts = [len(p) for p in partials]
-        picks = resample_indices(counts, partials, self.num_input)
-        batch = np.stack([p[idx] for p, idx in zip(partials, picks)]).astype(np.float32)
-        if self._pool is not None and len(batch) > 1:
-            outputs = list(self._pool.map(self._infer, np.split(batch, len(batch))))
-        else:
-            outputs = [self._infer(batch[s:s + self.max_batch]) for s in range(0, len(batch), self.max_batch)]
-        return np.concatenate(outputs)
+        run = self._pool.map if self._pool is not None else map
+        return np.stack(list(run(self._complete_one, partials)))
 
-    def _infer(self, batch: np.ndarray) -> np.ndarray:
+    def _complete_one(self, partial: np.ndarray) -> np.ndarray:
+        """Resample one vehicle to the network's input size and complete it (one task of the thread pool)."""
+        picks = resample_indices([len(partial)], [partial], self.num_input)[0]
+        cloud = torch.from_numpy(np.ascontiguousarray(partial[picks], dtype=np.float32)).unsqueeze(0)
         with torch.inference_mode():   # thread-local: set in the thread that runs the model
-            return self.model(torch.from_numpy(batch).to(self.device)).completion.float().cpu().numpy()
+            return self.model(cloud.to(self.device)).completion[0].float().cpu().numpy()
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D]) -> FrameCompletion:
         """Complete every vehicle of one frame; points in and out are in the cloud's frame."""
