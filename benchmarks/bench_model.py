@@ -12,6 +12,7 @@ profiler) are replayed and timed in the same run: the floor that no neighbour-se
 from __future__ import annotations
 
 import argparse
+import copy
 import statistics
 import time
 from collections import Counter
@@ -98,6 +99,24 @@ def gemm_time_ms(shapes: Counter, repeats: int) -> float:
     return best * 1e3
 
 
+def cuda_rows(model: GGDNet, frame: torch.Tensor, device: str, repeats: int) -> None:
+    """The torch path on a CUDA device: ms per vehicle at batch 1 and for the 16-vehicle batch."""
+    if not torch.cuda.is_available():
+        print(f"--device {device}: no CUDA device on this machine, CUDA rows skipped")
+        return
+    gpu = copy.deepcopy(model).to(device)
+    for b in (1, len(frame)):
+        x = frame[:b].to(device)
+
+        def run() -> None:
+            with torch.inference_mode():
+                gpu(x)
+            torch.cuda.synchronize()
+        times = _interleaved({"cuda": run}, repeats, b)["cuda"]
+        print(f"{device} ({torch.cuda.get_device_name(device)}), batch {b:2d}: "
+              f"{min(times):6.2f} / {statistics.median(times):6.2f} ms per vehicle (min / median)")
+
+
 def stages(model: GGDNet, x: torch.Tensor, repeats: int) -> None:
     """Per-stage latency of the fast path, ms per vehicle at batch 1, one thread."""
     cfg = model.config
@@ -133,6 +152,7 @@ def main() -> None:
     ap.add_argument("--train", action="store_true", help="also time a training step at batch 16 (both paths)")
     ap.add_argument("--profile", action="store_true", help="torch.profiler table of the fast path at batch 1")
     ap.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
+    ap.add_argument("--device", default="cpu", help="also time the torch path on this CUDA device (e.g. cuda)")
     ap.add_argument("--untrained", action="store_true",
                     help="randomly initialised weights (a collapsed P_s: the worst case for the x-window searches)")
     args = ap.parse_args()
@@ -161,6 +181,8 @@ def main() -> None:
         print(f"{name:34s} {cells}  fast/torch {ratio:.2f}")
     gemm = gemm_time_ms(gemm_shapes(model, one), args.repeats)
     print(f"dense GEMMs of one vehicle (the model's addmm/mm shapes replayed, 1 thread): {gemm:.2f} ms")
+    if args.device != "cpu":
+        cuda_rows(model, frame, args.device, args.repeats)
     if args.stages:
         stages(model, one, args.repeats)
     if args.profile:

@@ -79,6 +79,7 @@ def main() -> None:
     ap.add_argument("--vehicles", type=int, default=20)
     ap.add_argument("--pandaset", type=int, default=None, metavar="N", help="replay PandaSet-002 frame N instead")
     ap.add_argument("--num-threads", type=int, default=0, help="node num_threads (0 = one vehicle thread per core)")
+    ap.add_argument("--device", default="cpu", help="node device (cpu, cuda or cuda:N)")
     args = ap.parse_args()
 
     frame = busy_frame(args.vehicles) if args.pandaset is None else pandaset_frame(args.pandaset)
@@ -88,7 +89,8 @@ def main() -> None:
     os.environ.update(env)
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=DOMAIN_ID)
-    node = NodeProcess(tmp, {"num_threads": str(args.num_threads), "boxes_type": "marker"}, env, "bench")
+    node = NodeProcess(tmp, {"num_threads": str(args.num_threads), "boxes_type": "marker",
+                                     "device": args.device}, env, "bench")
     try:
         node.wait_ready()
         client = Client(context, node_name="bench")
@@ -118,7 +120,7 @@ def main() -> None:
                      for t in thirds]
         delta = {k: int(diag.get(k, 0) - base.get(k, 0)) for k in diag}
         print(f"frame {frame.index}: {len(frame.points)} points, {len(frame.boxes)} boxes; sent {len(sent)} frames at "
-              f"{send_rate:.1f} Hz for {args.duration:.0f} s; node num_threads={args.num_threads}")
+              f"{send_rate:.1f} Hz for {args.duration:.0f} s; node num_threads={args.num_threads}, device {args.device}")
         print(f"answered {len(answered)}/{len(sent)} frames ({len(answered) / args.duration:.2f} Hz), "
               f"vehicles completed {delta['vehicles_completed']}")
         if len(lat):

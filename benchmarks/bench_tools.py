@@ -14,6 +14,7 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from gd_completion.pipeline import default_threads  # noqa: E402
 from gd_completion.tools.complete import complete_bag  # noqa: E402
 from gd_completion.tools.convert import convert_kitti, convert_pandaset  # noqa: E402
 
@@ -54,7 +55,9 @@ def main() -> int:
     parser.add_argument("--pandaset-frames", type=int, default=20)
     parser.add_argument("--complete-frames", type=int, default=6)
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=0,
+                        help="vehicle threads per process (default: complete's own, one per core in one process, "
+                             "1 per worker process)")
     parser.add_argument("--min-points", type=int, default=None)
     parser.add_argument("--workers", type=int, default=2, help="also time `complete --workers N` (default 2)")
     args = parser.parse_args()
@@ -73,7 +76,7 @@ def main() -> int:
               f"(both sensors, ~170k points per frame)")
         convert_pandaset(SHARED / "pandaset-002", tmp / "panda_small", quiet=True, limit=args.complete_frames,
                          sensors=(0,))
-        options = {"num_threads": args.threads}
+        options = {"num_threads": args.threads} if args.threads else {}
         if args.min_points is not None:
             options["min_points"] = args.min_points
         for workers in sorted({1, args.workers}):
@@ -81,9 +84,10 @@ def main() -> int:
                                    progress=False, workers=workers, **options)
             rate = summary.frames / summary.seconds
             per_frame = summary.vehicles_completed / max(summary.frames, 1)
+            threads = args.threads or (1 if workers > 1 else default_threads())
             print(f"complete pandaset: {summary.frames} frames in {summary.seconds:.1f} s = {rate:.2f} frames/s "
-                  f"({per_frame:.0f} vehicles completed per frame, --workers {workers}, {args.threads} thread(s) "
-                  f"each; target >= 5 frames/s {'met' if rate >= 5 else 'NOT met'})")
+                  f"({per_frame:.0f} vehicles completed per frame, --workers {workers}, {threads} vehicle thread(s) "
+                  f"each; target >= 1 frame/s {'met' if rate >= 1 else 'NOT met'})")
             print(f"  {summary.text()}")
         summary = complete_bag(tmp / "panda_small", tmp / "panda_plumbing", progress=False,
                                completer=_CropOnly(model=args.model, **options))

@@ -7,11 +7,11 @@ out=${1:-benchmarks/results.txt}
 py=.venv/bin/python
 {
   echo "# $(date -u +%FT%TZ) $(nproc) cores, $(uname -m), load before: $(cut -d' ' -f1-3 /proc/loadavg)"
-  echo "## model (bench_model.py --train)"; $py benchmarks/bench_model.py --train --repeats 6 || echo "!! bench_model.py failed"
-  echo "## model, one thread (bench_model.py --threads 1)"; $py benchmarks/bench_model.py --threads 1 --repeats 6 --stages || echo "!! bench_model.py failed"
+  echo "## model: torch path vs fast path (bench_model.py --stages --train)"; $py benchmarks/bench_model.py --stages --train || echo "!! bench_model.py failed"
   echo "## core (bench_core.py)"; $py benchmarks/bench_core.py || echo "!! bench_core.py failed"
-  echo "## node (bench_node.py)"; $py benchmarks/bench_node.py || echo "!! bench_node.py failed"
-  echo "## offline tools (bench_tools.py)"; $py benchmarks/bench_tools.py || echo "!! bench_tools.py failed"
+  echo "## node, 20 vehicles (bench_node.py)"; $py benchmarks/bench_node.py || echo "!! bench_node.py failed"
+  echo "## node, PandaSet frame 0 (bench_node.py --pandaset 0)"; $py benchmarks/bench_node.py --pandaset 0 || echo "!! bench_node.py failed"
+  echo "## offline tools (bench_tools.py --complete-frames 10)"; $py benchmarks/bench_tools.py --complete-frames 10 || echo "!! bench_tools.py failed"
   echo "## hesai (bench_hesai.py)"; $py benchmarks/bench_hesai.py || echo "!! bench_hesai.py failed"
   echo "## synthetic data (bench_synth.py)"; $py benchmarks/bench_synth.py || echo "!! bench_synth.py failed"
 } 2>&1 | tee "$out"

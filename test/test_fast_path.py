@@ -135,3 +135,17 @@ def test_torch_path_still_trains(tmp_path):
         result = train(TINY, _data(8, 0), _data(4, 1), tmp_path, _settings(epochs=4, generation_epochs=4))
     history = result.history
     assert result.epochs_done == 4 and history[-1]["train_total"] < 0.8 * history[0]["train_total"]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="no CUDA device on this machine: the CUDA path is checked where a GPU is lent")
+def test_cuda_torch_path_matches_cpu_fast_path(scans, model):
+    import copy
+    x = torch.from_numpy(scans["partial"][:8])
+    gpu = copy.deepcopy(model).to("cuda")
+    with torch.inference_mode():
+        cpu_out = model(x).completion
+        gpu_out = gpu(x.cuda()).completion.cpu()
+        alone = gpu(x[3:4].cuda()).completion.cpu()
+    assert (gpu_out - cpu_out).abs().max().item() <= 1e-3
+    assert (alone - gpu_out[3:4]).abs().max().item() <= 1e-4

@@ -202,7 +202,7 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
 
     `completer_options` go to `VehicleCompleter.from_checkpoint` (device, num_threads, min_points, labels, ...).
     `workers` > 1 completes frames in that many spawned processes, each with its own completer and
-    `num_threads` torch threads (default 1); the output bag is the same as with `workers=1`, message for
+    `num_threads` vehicle threads (default 1); the output bag is the same as with `workers=1`, message for
     message and in the same write order. An injected `completer` works only with `workers=1`.
     """
     if workers < 1:
@@ -327,12 +327,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--storage", choices=bagio.STORAGES, default="mcap", help="output storage (default mcap)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--threads", type=int, default=0,
-                        help="torch CPU threads (of each worker with --workers > 1; default: torch's choice, "
-                        "1 per worker)")
+                        help="CPU threads completing a frame's vehicles in parallel, one torch thread each "
+                        "(default: one per core in one process, 1 per worker with --workers > 1)")
     parser.add_argument("--workers", type=_workers, default=1, metavar="N",
-                        help="complete frames in N processes with one torch thread each (default 1: in this "
-                        "process); pays off with N <= the number of CPU cores; 0 = one per core. The output "
-                        "bag is the same for every N")
+                        help="complete frames in N processes (default 1: in this process, its vehicles on "
+                        "--threads threads); 0 = one per core. The output bag is the same for every N")
     parser.add_argument("--min-points", type=int, default=None,
                         help="skip vehicles with fewer measured points (default: the pipeline's, 20)")
     parser.add_argument("--labels", default=None, help="comma-separated labels to complete (default car,van,truck)")
