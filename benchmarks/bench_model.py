@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import argparse
 import copy
+import functools
 import statistics
 import time
 from collections import Counter
+from collections.abc import Callable
 from contextlib import nullcontext
-from typing import Callable
 
 import numpy as np
 import torch
@@ -99,6 +100,12 @@ def gemm_time_ms(shapes: Counter, repeats: int) -> float:
     return best * 1e3
 
 
+def _synchronized(model: GGDNet, x: torch.Tensor) -> None:
+    with torch.inference_mode():
+        model(x)
+    torch.cuda.synchronize()
+
+
 def cuda_rows(model: GGDNet, frame: torch.Tensor, device: str, repeats: int) -> None:
     """The torch path on a CUDA device: ms per vehicle at batch 1 and for the 16-vehicle batch."""
     if not torch.cuda.is_available():
@@ -106,13 +113,7 @@ def cuda_rows(model: GGDNet, frame: torch.Tensor, device: str, repeats: int) -> 
         return
     gpu = copy.deepcopy(model).to(device)
     for b in (1, len(frame)):
-        x = frame[:b].to(device)
-
-        def run() -> None:
-            with torch.inference_mode():
-                gpu(x)
-            torch.cuda.synchronize()
-        times = _interleaved({"cuda": run}, repeats, b)["cuda"]
+        times = _interleaved({"cuda": functools.partial(_synchronized, gpu, frame[:b].to(device))}, repeats, b)["cuda"]
         print(f"{device} ({torch.cuda.get_device_name(device)}), batch {b:2d}: "
               f"{min(times):6.2f} / {statistics.median(times):6.2f} ms per vehicle (min / median)")
 

@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import os
 from collections import Counter
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -123,7 +123,7 @@ class VehicleCompleter:
     @classmethod
     def from_checkpoint(
         cls, path: str | Path | None = None, *, device: str = "cpu", num_threads: int | None = None, **options
-    ) -> "VehicleCompleter":
+    ) -> VehicleCompleter:
         """Load a checkpoint (the shipped weights when `path` is None or empty).
 
         `num_threads`: CPU threads completing vehicles in parallel, one torch thread each (None or 0:

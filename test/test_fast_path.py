@@ -46,10 +46,10 @@ def test_kernels_match_torch_searches(scans):
     with torch_kernels():
         assert torch.equal(fps, farthest_point_sample(x, 512))
     cases = [
-        (queries, queries, dict(k=8, margin=0.08, exclude_self=True)),   # the kNN graph over P_g
-        (queries, x, dict(k=8, margin=0.05)),                            # the ball query at scale 1
-        (queries, x[:, :256], dict(k=8, margin=0.1)),
-        (queries[:, :60], x[:, :40], dict(k=8, margin=0.05)),           # tiny: searched whole
+        (queries, queries, {"k": 8, "margin": 0.08, "exclude_self": True}),   # the kNN graph over P_g
+        (queries, x, {"k": 8, "margin": 0.05}),                            # the ball query at scale 1
+        (queries, x[:, :256], {"k": 8, "margin": 0.1}),
+        (queries[:, :60], x[:, :40], {"k": 8, "margin": 0.05}),           # tiny: searched whole
     ]
     for query, ref, options in cases:
         fast = window_knn(query, ref, block=32, **options)

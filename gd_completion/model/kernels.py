@@ -34,8 +34,7 @@ def _fps_cloud(xyz: np.ndarray, n: int, out: np.ndarray) -> None:
             dy = xyz[j, 1] - cy
             dz = xyz[j, 2] - cz
             d = dx * dx + dy * dy + dz * dz
-            if d < mind[j]:
-                mind[j] = d
+            mind[j] = min(mind[j], d)
             if mind[j] > best:
                 best = mind[j]
                 arg = j

@@ -8,8 +8,8 @@ identical except the order of exact distance ties, and no result depends on the 
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 import torch
 import torch.nn.functional as F

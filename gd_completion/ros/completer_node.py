@@ -5,7 +5,8 @@ import sys
 import threading
 import time
 from collections import Counter, deque
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -17,13 +18,18 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64, Header
 from visualization_msgs.msg import MarkerArray
 
+from gd_completion.box_messages import BoxSet, detections_to_boxes, markers_to_boxes
 from gd_completion.errors import GDCompletionError, PointCloud2Error
 from gd_completion.pipeline import VehicleCompleter, completion_to_structured
 from gd_completion.pointcloud2 import read_xyz
-from gd_completion.box_messages import BoxSet, detections_to_boxes, markers_to_boxes
 from gd_completion.ros.cloud_messages import structured_to_msg
-from gd_completion.ros.params import CompleterParams, ParameterError, check_model_sizes, declare_parameters, \
-    read_parameters
+from gd_completion.ros.params import (
+    CompleterParams,
+    ParameterError,
+    check_model_sizes,
+    declare_parameters,
+    read_parameters,
+)
 from gd_completion.stamp_sync import LatestSlot, Pair, StampSync, stamp_to_ns
 
 NODE_NAME = "completer"
