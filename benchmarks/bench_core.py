@@ -5,8 +5,8 @@ import array
 import os
 import statistics
 import time
+from collections.abc import Callable
 from types import SimpleNamespace
-from typing import Callable
 
 import numpy as np
 

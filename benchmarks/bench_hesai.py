@@ -6,8 +6,6 @@ import os
 import time
 from pathlib import Path
 
-import numpy as np
-
 from gd_completion import bagio
 from gd_completion.hesai import ScanAssembler, decode_packets, load_calibration
 from gd_completion.hesai.packets import packets_to_array

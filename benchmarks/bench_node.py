@@ -25,10 +25,10 @@ sys.path.insert(0, str(REPO / "test"))
 sys.path.insert(0, str(REPO))
 
 import rclpy  # noqa: E402
-
-from gd_completion.geometry import Box3D, crop_boxes  # noqa: E402
 from kitti_frames import KittiFrame, cloud_msg, read_frame  # noqa: E402
 from ros_live import DOMAIN_ID, Client, NodeProcess, ros_env  # noqa: E402
+
+from gd_completion.geometry import Box3D, crop_boxes  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 KITTI = SHARED / "kitti-object-sample" / "training"
@@ -120,7 +120,8 @@ def main() -> None:
                      for t in thirds]
         delta = {k: int(diag.get(k, 0) - base.get(k, 0)) for k in diag}
         print(f"frame {frame.index}: {len(frame.points)} points, {len(frame.boxes)} boxes; sent {len(sent)} frames at "
-              f"{send_rate:.1f} Hz for {args.duration:.0f} s; node num_threads={args.num_threads}, device {args.device}")
+              f"{send_rate:.1f} Hz for {args.duration:.0f} s; node num_threads={args.num_threads}, "
+              f"device {args.device}")
         print(f"answered {len(answered)}/{len(sent)} frames ({len(answered) / args.duration:.2f} Hz), "
               f"vehicles completed {delta['vehicles_completed']}")
         if len(lat):

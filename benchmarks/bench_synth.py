@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import time
 
@@ -46,9 +47,8 @@ def main() -> None:
         row = []
         for dist in (10.0, 15.0, 20.0):
             world = car.transformed(0.6, (dist * np.cos(0.3), dist * np.sin(0.3), car.extent[2] / 2))
-            n = len(simulate_scan([world], (0.0, 0.0, 1.8), pattern, rng))
-            row.append(f"{dist:.0f} m {_best(lambda: simulate_scan([world], (0.0, 0.0, 1.8), pattern, rng), 5) * 1e3:5.1f}"
-                       f" ({n} pts)")
+            scan = functools.partial(simulate_scan, [world], (0.0, 0.0, 1.8), pattern, rng)
+            row.append(f"{dist:.0f} m {_best(scan, 5) * 1e3:5.1f} ({len(scan())} pts)")
         print(f"  {name:10s} " + "   ".join(row))
 
     t0 = time.perf_counter()

@@ -5,15 +5,22 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gd_completion.box_messages import (MARKER_ADD, MARKER_CUBE, BoxSet, detections_to_boxes, markers_to_boxes,
-                                        yaw_from_quaternion)
+from gd_completion.box_messages import (
+    MARKER_ADD,
+    MARKER_CUBE,
+    BoxSet,
+    detections_to_boxes,
+    markers_to_boxes,
+    yaw_from_quaternion,
+)
 from gd_completion.errors import BagError, DataFormatError
 from gd_completion.geometry import Box3D
 from gd_completion.stamp_sync import stamp_to_ns

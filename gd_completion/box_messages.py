@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 from gd_completion.errors import BoxError
 from gd_completion.geometry import Box3D
@@ -97,7 +98,8 @@ def detections_to_boxes(msg: Any, class_map: Mapping[str, str] | None = None) ->
     array_frame = str(msg.header.frame_id)
     boxes, frames = [], []
     for i, det in enumerate(msg.detections):
-        boxes.append(_box(det.bbox.center, det.bbox.size, map_label(_best_class(det.results), class_map), _instance_id(det.id, i)))
+        label = map_label(_best_class(det.results), class_map)
+        boxes.append(_box(det.bbox.center, det.bbox.size, label, _instance_id(det.id, i)))
         own = getattr(getattr(det, "header", None), "frame_id", "")
         frames.append(str(own) or array_frame)
     return BoxSet(stamp_to_ns(msg.header.stamp), tuple(boxes), tuple(frames))

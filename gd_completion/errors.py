@@ -24,3 +24,7 @@ class BagError(GDCompletionError):
 
 class DataFormatError(GDCompletionError):
     """A dataset file (KITTI, PandaSet, Hesai, mesh, calibration) with the wrong format."""
+
+
+class EvaluationError(GDCompletionError):
+    """An evaluation input (held-out set, checkpoint list, output folder) is missing or unusable."""

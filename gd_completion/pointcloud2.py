@@ -1,8 +1,9 @@
 """PointCloud2 <-> numpy structured arrays, duck-typed on the message (rclpy, rosbags or plain objects)."""
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Iterable, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 

@@ -1,8 +1,8 @@
 """PNG rendering (matplotlib Agg, no ROS): bird's-eye frames and per-vehicle side/top views."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 

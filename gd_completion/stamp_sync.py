@@ -3,8 +3,9 @@ from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Callable, Generic, TypeVar
+from typing import Generic, TypeVar
 
 C = TypeVar("C")
 B = TypeVar("B")

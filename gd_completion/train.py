@@ -4,9 +4,10 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -71,8 +72,8 @@ def _pairs(data: ArrayPair, name: str, cfg: GGDConfig) -> tuple[torch.Tensor, to
     if partial.shape[0] != complete.shape[0] or partial.shape[0] == 0:
         raise DataFormatError(f"{name}: {partial.shape[0]} partial vs {complete.shape[0]} complete samples")
     if partial.shape[1] != cfg.num_input or complete.shape[1] != cfg.num_output:
-        raise DataFormatError(f"{name}: expected partial (S, {cfg.num_input}, 3) and complete (S, {cfg.num_output}, 3), "
-                              f"got {tuple(partial.shape)} and {tuple(complete.shape)}")
+        raise DataFormatError(f"{name}: expected partial (S, {cfg.num_input}, 3) and complete "
+                              f"(S, {cfg.num_output}, 3), got {tuple(partial.shape)} and {tuple(complete.shape)}")
     return partial, complete
 
 

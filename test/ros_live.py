@@ -11,6 +11,7 @@ from pathlib import Path
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from kitti_frames import KittiFrame, cloud_msg, marker_array
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
@@ -18,8 +19,6 @@ from std_msgs.msg import Float64
 from visualization_msgs.msg import MarkerArray
 
 from gd_completion.geometry import Box3D
-
-from kitti_frames import KittiFrame, cloud_msg, marker_array
 
 REPO = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 220 + os.getpid() % 12  # 220..231: apart from the 120..219 other ROS tests use
@@ -148,7 +147,8 @@ class Client:
         while time.monotonic() < end:
             sent.append(self.send(frame))
             with self._cond:
-                if self._cond.wait_for(lambda: any(s in self.replies for s in sent), min(every, end - time.monotonic())):
+                wait = min(every, end - time.monotonic())
+                if self._cond.wait_for(lambda: any(s in self.replies for s in sent), wait):
                     return next(self.replies[s] for s in sent if s in self.replies)
         return None
 

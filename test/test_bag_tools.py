@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from interfaces import ros_test_domain_id
 
 from gd_completion import bagio
 from gd_completion.cli import main
@@ -16,7 +17,8 @@ from gd_completion.errors import GDCompletionError
 from gd_completion.geometry import Box3D
 from gd_completion.pointcloud2 import read_points, write_points
 from gd_completion.tools.complete import complete_bag
-from interfaces import ros_test_domain_id
+
+pytestmark = pytest.mark.integration  # processes, ROS nodes, builds or bags: the slow part of the suite
 
 KITTI = "kitti-object-sample/training"
 REPO = Path(__file__).resolve().parents[1]
@@ -72,7 +74,7 @@ def test_complete_keeps_every_input_message(kitti_bag: Path, completed_bag: Path
     completed = out_msgs["/kitti/completed"]
     assert [s for s, _ in completed] == [s for s, _ in in_msgs["/kitti/points"]]
     n_generated = 0
-    for (stamp, raw), (_, cloud_raw) in zip(completed, in_msgs["/kitti/points"]):
+    for (_stamp, raw), (_, cloud_raw) in zip(completed, in_msgs["/kitti/points"]):
         msg = bagio.deserialize(raw, bagio.POINTCLOUD2)
         cloud = bagio.deserialize(cloud_raw, bagio.POINTCLOUD2)
         assert msg.header.frame_id == cloud.header.frame_id and msg.header.stamp == cloud.header.stamp

@@ -11,9 +11,16 @@ import time
 from pathlib import Path
 
 import pytest
+from interfaces import (
+    DETECTION3DARRAY_TYPE_HASH,
+    REPO,
+    import_vision_msgs,
+    ros_test_domain_id,
+    roundtrip_detection_array,
+    vision_msgs_type_hash,
+)
 
-from interfaces import (DETECTION3DARRAY_TYPE_HASH, REPO, import_vision_msgs, ros_test_domain_id,
-                        roundtrip_detection_array, vision_msgs_type_hash)
+pytestmark = pytest.mark.integration  # processes, ROS nodes, builds or bags: the slow part of the suite
 
 VENV_BIN = Path(sys.executable).parent
 COLCON = VENV_BIN / "colcon"

@@ -280,8 +280,8 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
 
 
 def test_load_heldout_uses_the_synth_dataset(tmp_path):
-    from gd_completion.synth import dataset
     from gd_completion.evaluation.synthetic import EVAL_SEED, load_heldout
+    from gd_completion.synth import dataset
 
     partial, complete, source, surface = load_heldout(2)
     assert partial.shape == (2, 1024, 3) and complete.shape == (2, 2048, 3) and surface.shape == (2, 2048, 3)

@@ -9,7 +9,15 @@ import pytest
 
 from gd_completion.errors import BoxError
 from gd_completion.geometry import (
-    Box3D, box_corners, box_problem, boxes_to_array, crop_boxes, denormalize, finite_mask, finite_rows, normalize,
+    Box3D,
+    box_corners,
+    box_problem,
+    boxes_to_array,
+    crop_boxes,
+    denormalize,
+    finite_mask,
+    finite_rows,
+    normalize,
 )
 
 

@@ -11,7 +11,7 @@ from gd_completion import bagio
 from gd_completion.errors import DataFormatError, GDCompletionError
 from gd_completion.hesai import ScanAssembler, decode_packets, decode_scan, load_calibration, read_pcd
 from gd_completion.hesai.decoder import ReturnType
-from gd_completion.hesai.packets import parse_packets, packets_to_array
+from gd_completion.hesai.packets import packets_to_array, parse_packets
 from gd_completion.pointcloud2 import read_points
 from gd_completion.tools.convert_hesai import PANDAR_SCAN, add_hesai_parser
 
@@ -37,7 +37,7 @@ def _messages(bag: Path) -> list[tuple[int, list[bytes]]]:
     if key not in _CACHE:
         out = []
         with bagio.open_bag(bag) as reader:
-            for conn, ns, raw in bagio.iter_raw(reader):
+            for _conn, ns, raw in bagio.iter_raw(reader):
                 msg = bagio.deserialize(raw, PANDAR_SCAN)
                 out.append((ns, [bytes(p.data[: int(p.size)]) for p in msg.packets]))
         _CACHE[key] = out

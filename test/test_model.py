@@ -7,8 +7,16 @@ import pytest
 import torch
 
 from gd_completion.errors import CheckpointError
-from gd_completion.model import (GGDConfig, GGDNet, chamfer_l2, chamfer_l2_directional, farthest_point_sample,
-                                 load_model, read_checkpoint_metadata, save_checkpoint)
+from gd_completion.model import (
+    GGDConfig,
+    GGDNet,
+    chamfer_l2,
+    chamfer_l2_directional,
+    farthest_point_sample,
+    load_model,
+    read_checkpoint_metadata,
+    save_checkpoint,
+)
 from gd_completion.model.losses import ggd_loss, laplacian_coordinates, laplacian_loss, smooth_l1
 from gd_completion.model.ops import ball_group, knn_graph, smallest_k, window_knn
 

@@ -10,18 +10,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from kitti_frames import KittiFrame, cloud_msg, read_frame
 
 from gd_completion.geometry import Box3D, crop_boxes
 from gd_completion.pipeline import LABEL_IDS
 from gd_completion.pointcloud2 import read_points
 
-from kitti_frames import KittiFrame, cloud_msg, read_frame
-
 rclpy = pytest.importorskip("rclpy")
+from ros_live import DOMAIN_ID, Client, NodeProcess, ros_env  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
-from ros_live import DOMAIN_ID, Client, NodeProcess, ros_env  # noqa: E402
+pytestmark = pytest.mark.integration  # processes, ROS nodes, builds or bags: the slow part of the suite
 
 NUM_OUTPUT = 2048  # points the shipped model generates per vehicle
 
@@ -113,8 +113,8 @@ def test_completes_kitti_frames_from_markers(marker_node, frames):
         msg = client.wait_reply(stamp)
         assert msg is not None, f"no completion for KITTI frame {index}\n{node.stderr[-2000:]}"
         check_completion(msg, frames[index], stamp, expected)
-    deltas = client.wait_diagnostics(base, {"vehicles_completed": 4, "skipped_too_few_points": 1, "frames_published": 3})
-    assert deltas == {"vehicles_completed": 4, "skipped_too_few_points": 1, "frames_published": 3}
+    expected = {"vehicles_completed": 4, "skipped_too_few_points": 1, "frames_published": 3}
+    assert client.wait_diagnostics(base, expected) == expected
     assert node.stderr.count("completer ready") == 1
     assert client.diag["latency_p95_ms"] > 0 and client.diag["rate_hz"] > 0
 

@@ -11,8 +11,21 @@ import pytest
 
 from gd_completion.errors import PointCloud2Error
 from gd_completion.pointcloud2 import (
-    FLOAT32, FLOAT64, INT8, INT16, INT32, UINT8, UINT16, UINT32, CloudLayout, FieldSpec, cloud_dtype,
-    read_points, read_xyz, write_points, xyz_array_to_structured,
+    FLOAT32,
+    FLOAT64,
+    INT8,
+    INT16,
+    INT32,
+    UINT8,
+    UINT16,
+    UINT32,
+    CloudLayout,
+    FieldSpec,
+    cloud_dtype,
+    read_points,
+    read_xyz,
+    write_points,
+    xyz_array_to_structured,
 )
 
 # struct codes and value ranges of each PointField datatype (independent of the code under test).

@@ -149,8 +149,8 @@ def test_load_small_ascii_files(tmp_path):
 
 
 def test_load_binary_ply_with_mixed_polygons(tmp_path):
-    head = ("ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
-            "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n").encode()
+    head = (b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+            b"property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n")
     verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], "<f4").tobytes()
     faces = struct.pack("<B3i", 3, 0, 1, 2) + struct.pack("<B4i", 4, 0, 1, 2, 3)
     (tmp_path / "b.ply").write_bytes(head + verts + faces)
@@ -312,7 +312,7 @@ def test_synthetic_drive():
         assert f.points.dtype == np.float32 and f.intensity.shape == (len(f.points),) and len(f.points) > 50_000
         assert 0.0 <= f.intensity.min() and f.intensity.max() <= 1.0
         assert np.percentile(f.points[:, 2], 5) == pytest.approx(-SENSOR_HEIGHT, abs=0.1)  # ground
-        for box, idx in zip(f.boxes, crop_boxes(f.points, f.boxes, 0.1)):
+        for box, _idx in zip(f.boxes, crop_boxes(f.points, f.boxes, 0.1)):
             assert box.label in ("car", "van", "truck")
             assert box.center[2] - box.size[2] / 2 == pytest.approx(-SENSOR_HEIGHT, abs=1e-6)
             assert 5.0 - 1e-6 <= np.hypot(*box.center[:2]) or f is not frames[0]

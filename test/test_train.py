@@ -4,13 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from test_model import TINY
 
 from gd_completion.errors import DataFormatError
-from gd_completion.model import load_model, read_checkpoint_metadata
-from gd_completion.model import GGDConfig, GGDNet
+from gd_completion.model import GGDConfig, GGDNet, load_model, read_checkpoint_metadata
 from gd_completion.train import TrainSettings, train, warm_start
-
-from test_model import TINY
 
 
 def _data(n: int, seed: int):

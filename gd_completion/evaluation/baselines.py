@@ -1,7 +1,7 @@
 """Completion baselines on normalised partial clouds: raw input, mirror symmetry, generation-only, GGD-Net."""
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch

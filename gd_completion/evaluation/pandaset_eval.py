@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -221,7 +221,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
 
 
 def _examples(items: list[PandaSetItem], meta: list[tuple[VehicleTrack, int]], partials: list[np.ndarray],
-              completion: np.ndarray, refs: list[np.ndarray], n: int) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+              completion: np.ndarray, refs: list[np.ndarray], n: int
+              ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
     """Up to `n` render items (title, input, GGD-Net completion, reference): each size bin in turn, one
     frame per vehicle, the vehicles with the largest aggregates first."""
     order = sorted(range(len(items)), key=lambda i: -sum(len(p) for p in meta[i][0].points))

@@ -3,13 +3,13 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
-from gd_completion.render import render_vehicles
 from gd_completion.atomic import atomic_path
+from gd_completion.render import render_vehicles
 
 from .baselines import BASELINE_NAMES, BASELINE_TITLES
 from .metrics import OBSERVED_RADIUS
@@ -62,7 +62,8 @@ def region_section(result: SyntheticResult) -> str:
     rows = [[BASELINE_TITLES[n], result.metrics[n]["cd_gd_observed"], result.metrics[n]["cd_gd_unobserved"]]
             for n in BASELINE_NAMES]
     return (f"### Completeness by region\n\nCD(G,D) x1e4 of the ground-truth points within {OBSERVED_RADIUS} of an "
-            f"input point (observed, {100 * result.observed_fraction:.0f} % of them) and of the others (unobserved).\n\n"
+            f"input point (observed, {100 * result.observed_fraction:.0f} % of them) and of the others "
+            "(unobserved).\n\n"
             + markdown_table(["method", "observed x1e4", "unobserved x1e4"], rows))
 
 

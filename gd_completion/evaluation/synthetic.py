@@ -2,18 +2,19 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 from torch import Tensor
 
+from gd_completion.errors import EvaluationError
 from gd_completion.model.checkpoint import load_model
 from gd_completion.model.network import GGDNet
 from gd_completion.synth.dataset import build_dataset, load_dataset
 
-from . import EvaluationError
 from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs
 from .metrics import CD_SCALE, FIDELITY_SCALE, fidelity, nearest_sq_distance, observed_mask, region_means
 
@@ -119,7 +120,8 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
         result[name] = {**row, "fidelity": float(fidelity(partial, out).mean()) * FIDELITY_SCALE,
                         "cd_gd_observed": seen * CD_SCALE, "cd_gd_unobserved": unseen * CD_SCALE}
     floor = _chamfer_row(np.asarray(surface, np.float32), complete)[0] if surface is not None else None
-    examples = [(f"synthetic #{i}", partial[i], completion[i], complete[i]) for i in range(min(n_examples, len(partial)))]
+    examples = [(f"synthetic #{i}", partial[i], completion[i], complete[i])
+                for i in range(min(n_examples, len(partial)))]
     return SyntheticResult(len(partial), seed, source, result, time.perf_counter() - t0, examples,
                            {name: int(out.shape[1]) for name, out in outputs.items()}, int(complete.shape[1]),
                            observed_fraction, floor)

@@ -7,8 +7,8 @@ from typing import Any
 
 import torch
 
-from ..errors import CheckpointError
 from ..atomic import atomic_path
+from ..errors import CheckpointError
 from .config import GGDConfig
 from .network import GGDNet
 

@@ -47,7 +47,8 @@ class GGDConfig:
             problems.append(f"num_control={self.num_control} must be in [1, num_input={self.num_input}]")
         n_s = self.num_output - self.num_control
         if n_s < 1 or math.prod(self.tree_arity) != n_s:
-            problems.append(f"prod(tree_arity)={math.prod(self.tree_arity)} must equal num_output - num_control = {n_s}")
+            problems.append(f"prod(tree_arity)={math.prod(self.tree_arity)} must equal "
+                            f"num_output - num_control = {n_s}")
         if len(self.tree_arity) < 2:
             problems.append("tree_arity needs at least 2 levels")
         if len(self.encoder_h0) < 1 or len(self.encoder_h1) < 1 or len(self.local_widths) < 1:

@@ -6,9 +6,9 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 
+from gd_completion.box_messages import parse_class_map
 from gd_completion.errors import BoxError, GDCompletionError
 from gd_completion.pipeline import LABEL_IDS
-from gd_completion.box_messages import parse_class_map
 
 BOXES_TYPES = ("auto", "detection3d", "marker")
 
@@ -51,8 +51,10 @@ def _float(lo: float, hi: float) -> dict[str, Any]:
 # name -> (default, description, range keyword arguments of ParameterDescriptor)
 PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "cloud_topic": ("points", "Input sensor_msgs/PointCloud2 topic (sensor-data QoS).", {}),
-    "boxes_topic": ("detections", "Input 3D boxes topic (vision_msgs/Detection3DArray or visualization_msgs/MarkerArray).", {}),
-    "output_topic": ("completed_vehicles", "Output PointCloud2: x, y, z, instance_id, label, generated; input header.", {}),
+    "boxes_topic": ("detections", "Input 3D boxes topic (vision_msgs/Detection3DArray or "
+                                  "visualization_msgs/MarkerArray).", {}),
+    "output_topic": ("completed_vehicles", "Output PointCloud2: x, y, z, instance_id, label, generated; "
+                                           "input header.", {}),
     "boxes_type": ("auto", "Boxes message type: auto (Detection3DArray when vision_msgs is installed, else "
                            "MarkerArray), detection3d or marker.", {}),
     "model_path": ("", "GGD-Net checkpoint (.pt); empty = the weights shipped with the package.", {}),
@@ -101,7 +103,8 @@ def validate(values: dict[str, Any]) -> CompleterParams:
     labels = tuple(str(v).strip().lower() for v in values["labels"])
     unknown = [v for v in labels if v not in LABEL_IDS]
     if not labels or unknown:
-        raise ParameterError(f"parameter labels={list(values['labels'])} must be a non-empty subset of {sorted(LABEL_IDS)}")
+        raise ParameterError(f"parameter labels={list(values['labels'])} must be a non-empty subset of "
+                             f"{sorted(LABEL_IDS)}")
     try:
         class_map = parse_class_map(values["class_map"])
     except BoxError as exc:

@@ -83,7 +83,8 @@ def _loft(stations: np.ndarray, loops: np.ndarray) -> Mesh:
     s, c, _ = loops.shape
     verts = loops.reshape(-1, 3)
     centres = np.stack([loops[0].mean(axis=0), loops[-1].mean(axis=0)])
-    faces = np.concatenate([_tube_faces(s, c), _cap_faces(0, c, s * c, True), _cap_faces((s - 1) * c, c, s * c + 1, False)])
+    faces = np.concatenate([_tube_faces(s, c), _cap_faces(0, c, s * c, True),
+                            _cap_faces((s - 1) * c, c, s * c + 1, False)])
     return Mesh(np.concatenate([verts, centres]), faces)
 
 

@@ -82,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
                 measured = result.points[rows & (result.generated == 0)]
                 if rows.any() and (box.instance_id not in best or len(measured) > len(best[box.instance_id].measured)):
                     best[box.instance_id] = BestView(box, measured, result.points[rows & (result.generated == 1)])
-    items = [(f"{view.box.label} #{key}", normalize(view.measured, view.box), normalize(view.completion, view.box), None)
+    items = [(f"{view.box.label} #{key}", normalize(view.measured, view.box),
+              normalize(view.completion, view.box), None)
              for key, view in sorted(best.items())]
     vehicles_png = render_vehicles(args.output / "demo_vehicles.png", items) if items else None
     last = frames[-1]

@@ -9,8 +9,13 @@ import torch
 
 from gd_completion.evaluation import EvaluationError
 from gd_completion.evaluation.pandaset_eval import evaluate_pandaset
-from gd_completion.evaluation.report import (ablation_section, pandaset_section, synthetic_section, write_renders,
-                                             write_report)
+from gd_completion.evaluation.report import (
+    ablation_section,
+    pandaset_section,
+    synthetic_section,
+    write_renders,
+    write_report,
+)
 from gd_completion.evaluation.synthetic import EVAL_SEED, control_point_ablation, evaluate_synthetic, load_heldout
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model, read_checkpoint_metadata
 

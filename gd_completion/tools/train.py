@@ -32,7 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--epochs", type=int, default=70)
     parser.add_argument("--generation-epochs", type=int, default=40, help="epochs with lambda=0 (paper: 40)")
     parser.add_argument("--lam", type=float, default=3.0, help="lambda after the generation epochs (paper: 3)")
-    parser.add_argument("--alpha", type=float, default=1000.0, help="weight of the control-point smooth-L1 term (paper: 1000)")
+    parser.add_argument("--alpha", type=float, default=1000.0,
+                        help="weight of the control-point smooth-L1 term (paper: 1000)")
     parser.add_argument("--beta", type=float, default=0.5, help="weight of the Laplacian shape term (paper: 0.5)")
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--lr", type=float, default=1e-3)
