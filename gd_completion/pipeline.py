@@ -1,20 +1,20 @@
-"""Completion pipeline: crop vehicles by their boxes, normalise, one batched GGD-Net pass, map back."""
+"""Completion pipeline: crop and normalise every vehicle of a frame (`preprocess`), complete it, map back."""
 from __future__ import annotations
 
 import os
 from collections import Counter
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from gd_completion.geometry import Box3D, box_problem, crop_boxes, denormalize, finite_mask, normalize
-from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet
-from gd_completion.model.ops import farthest_point_sample
+from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles, network_input
 
 LABEL_IDS: dict[str, int] = {"car": 1, "van": 2, "truck": 3}
 DEFAULT_LABELS: tuple[str, ...] = ("car", "van", "truck")
@@ -50,15 +50,6 @@ class FrameCompletion:
     stats: FrameStats
 
 
-@dataclass(frozen=True)
-class PreparedVehicle:
-    """One croppable vehicle: its box, its measured points and the network input in the box frame."""
-
-    box: Box3D
-    measured: np.ndarray  # (M, 3) cloud frame
-    normalized: np.ndarray  # (M, 3) box frame, divided by length
-
-
 def completion_to_structured(completion: FrameCompletion) -> np.ndarray:
     """Pack a FrameCompletion into a structured array (x, y, z, instance_id, label, generated)."""
     out = np.empty(len(completion.points), dtype=COMPLETION_DTYPE)
@@ -67,18 +58,6 @@ def completion_to_structured(completion: FrameCompletion) -> np.ndarray:
     out["label"] = completion.label
     out["generated"] = completion.generated
     return out
-
-
-def resample_indices(counts: Sequence[int], normalized: Sequence[np.ndarray], n: int) -> list[np.ndarray]:
-    """Indices giving exactly `n` points per vehicle: farthest point sampling down, cyclic repetition up."""
-    result = []
-    for m, points in zip(counts, normalized):
-        if m <= n:
-            result.append(np.arange(n) % m)
-        else:   # one cloud at a time: each vehicle's sample is independent of the others
-            cloud = torch.from_numpy(np.ascontiguousarray(points[:m], dtype=np.float32)).unsqueeze(0)
-            result.append(farthest_point_sample(cloud, n)[0].numpy())
-    return result
 
 
 def default_threads() -> int:
@@ -98,20 +77,16 @@ class VehicleCompleter:
         self,
         model: GGDNet,
         *,
+        preprocessing: Preprocessing | None = None,
         labels: Sequence[str] = DEFAULT_LABELS,
-        min_points: int = 20,
-        margin: float = 0.1,
-        ground_clearance: float = 0.1,
         include_input_points: bool = True,
         device: str = "cpu",
         threads: int = 1,
     ) -> None:
         self.model = model.to(device).eval()
         self.device = torch.device(device)
+        self.preprocessing = preprocessing or Preprocessing()
         self.labels = frozenset(labels)
-        self.min_points = int(min_points)
-        self.margin = float(margin)
-        self.ground_clearance = float(ground_clearance)
         self.include_input_points = bool(include_input_points)
         self.num_input = model.config.num_input
         self.num_output = model.config.num_output
@@ -122,17 +97,21 @@ class VehicleCompleter:
 
     @classmethod
     def from_checkpoint(
-        cls, path: str | Path | None = None, *, device: str = "cpu", num_threads: int | None = None, **options
+        cls, path: str | Path | None = None, *, device: str = "cpu", num_threads: int | None = None,
+        min_points: int | None = None, crop_margin: float | None = None, **options
     ) -> VehicleCompleter:
-        """Load a checkpoint (the shipped weights when `path` is None or empty).
+        """Load a checkpoint (the shipped weights when `path` is None or empty) with its preprocessing.
 
         `num_threads`: CPU threads completing vehicles in parallel, one torch thread each (None or 0:
-        one per core). Sets torch's intra-op threads of this process to 1.
+        one per core). Sets torch's intra-op threads of this process to 1. `min_points`, `crop_margin`:
+        override the checkpoint's preprocessing (None keeps it).
         """
         if torch.device(device).type == "cpu":
             torch.set_num_threads(1)
-        model = load_model(path or DEFAULT_WEIGHTS, device=device)
-        return cls(model, device=device, threads=int(num_threads or default_threads()), **options)
+        model, preprocessing = load_checkpoint(path or DEFAULT_WEIGHTS, device=device)
+        overrides = {k: v for k, v in (("min_points", min_points), ("crop_margin", crop_margin)) if v is not None}
+        return cls(model, preprocessing=replace(preprocessing, **overrides), device=device,
+                   threads=int(num_threads or default_threads()), **options)
 
     def warm_up(self) -> None:
         """Complete one synthetic vehicle: compiles the CPU kernels (cached on disk after the first time,
@@ -147,7 +126,7 @@ class VehicleCompleter:
             self._pool.shutdown(wait=True)
             self._pool = None
 
-    def prepare(self, points: np.ndarray, boxes: Sequence[Box3D], stats: FrameStats) -> list[PreparedVehicle]:
+    def prepare(self, points: np.ndarray, boxes: Sequence[Box3D], stats: FrameStats) -> list[CroppedVehicle]:
         """Drop non-finite points, filter and validate boxes, crop; counts every skip in `stats`."""
         points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         finite = finite_mask(points)
@@ -162,17 +141,9 @@ class VehicleCompleter:
                 stats.skipped["degenerate_box"] += 1
             else:
                 usable.append(box)
-        if not usable:
-            return []
-        vehicles = []
-        for box, idx in zip(usable, crop_boxes(points, usable, self.margin)):
-            measured = points[idx]
-            normalized = normalize(measured, box)
-            above_ground = normalized[:, 2] * box.size[0] >= -box.size[2] / 2 + self.ground_clearance
-            if int(above_ground.sum()) < self.min_points:
-                stats.skipped["too_few_points"] += 1
-                continue
-            vehicles.append(PreparedVehicle(box, measured[above_ground], normalized[above_ground]))
+        vehicles, too_few = crop_vehicles(points, usable, self.preprocessing)
+        if too_few:
+            stats.skipped["too_few_points"] += len(too_few)
         return vehicles
 
     def complete_normalized(self, partials: Sequence[np.ndarray]) -> np.ndarray:
@@ -184,8 +155,7 @@ class VehicleCompleter:
 
     def _complete_one(self, partial: np.ndarray) -> np.ndarray:
         """Resample one vehicle to the network's input size and complete it (one task of the thread pool)."""
-        picks = resample_indices([len(partial)], [partial], self.num_input)[0]
-        cloud = torch.from_numpy(np.ascontiguousarray(partial[picks], dtype=np.float32)).unsqueeze(0)
+        cloud = torch.from_numpy(network_input(partial, self.num_input)).unsqueeze(0)
         with torch.inference_mode():   # thread-local: set in the thread that runs the model
             return self.model(cloud.to(self.device)).completion[0].float().cpu().numpy()
 

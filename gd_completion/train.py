@@ -17,6 +17,7 @@ from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_check
 from .model.config import GGDConfig
 from .model.losses import CD_SCALE, chamfer_l2, ggd_loss
 from .model.network import GGDNet
+from .preprocess import Preprocessing
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +108,7 @@ def warm_start(model: GGDNet, path: str | Path, skip: Sequence[str] = ()) -> lis
 
 def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir: str | Path,
           settings: TrainSettings | None = None, *, resume: bool = False, init_from: str | Path | None = None,
-          init_skip: Sequence[str] = (), **overrides: Any) -> TrainResult:
+          init_skip: Sequence[str] = (), preprocessing: Preprocessing | None = None, **overrides: Any) -> TrainResult:
     """Train GGDNet; writes `out_dir/last.pt` (resumable) every epoch and `out_dir/best.pt` (best val P_o CD).
 
     `overrides` set TrainSettings fields (epochs=, batch_size=, lr=, generation_epochs=, lam=, device=,
@@ -115,6 +116,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     (its model config and optimizer state; the epoch count and schedule come from `settings`).
     Otherwise `init_from` warm-starts the new model from a checkpoint (`warm_start`; e.g. the shipped
     weights for a control-point ablation whose tree decoder differs), skipping the `init_skip` prefixes.
+    `preprocessing`: the contract the data was made with (`synth.dataset` metadata), stored in every checkpoint.
     """
     settings = settings or TrainSettings()
     for k, v in overrides.items():
@@ -183,8 +185,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                 sums[k] = sums.get(k, 0.0) + v.item() * idx.numel()
             seen += idx.numel()
         if seen == 0:   # time budget ran out before the first batch of this epoch
-            save_checkpoint(last_path, model, optimizer=optimizer.state_dict(), epoch=epoch, history=history,
-                            settings=asdict(settings), best_cd=best)
+            save_checkpoint(last_path, model, preprocessing, optimizer=optimizer.state_dict(), epoch=epoch,
+                            history=history, settings=asdict(settings), best_cd=best)
             log.info("time budget of %s s reached before epoch %d; stopping", settings.time_budget_s, epoch + 1)
             break
         record = {"epoch": epoch + 1, "lam": lam, "seconds": time.monotonic() - t0,
@@ -199,8 +201,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         if not stopped and record["val_cd_completion"] < best:
             best = record["val_cd_completion"]
             extra["best_cd"] = best
-            save_checkpoint(best_path, model, **extra)
-        save_checkpoint(last_path, model, optimizer=optimizer.state_dict(), **extra)
+            save_checkpoint(best_path, model, preprocessing, **extra)
+        save_checkpoint(last_path, model, preprocessing, optimizer=optimizer.state_dict(), **extra)
         if stopped:
             log.info("time budget of %.0f s reached; stopping", settings.time_budget_s)
             break

@@ -187,7 +187,7 @@ def test_size_bins():
 def test_pandaset_aggregate_of_a_parked_vehicle(shared_data):
     from gd_completion.datasets.pandaset import PandaSetSequence
     from gd_completion.evaluation.pandaset_eval import collect_tracks, stationary_vehicles
-    from gd_completion.pipeline import VehicleCompleter
+    from gd_completion.preprocess import Preprocessing
 
     root = shared_data / "pandaset-002"
     if not root.is_dir():
@@ -195,12 +195,12 @@ def test_pandaset_aggregate_of_a_parked_vehicle(shared_data):
     sequence = PandaSetSequence(root)
     vehicles = stationary_vehicles(sequence)
     assert "Car" in vehicles.values() and all(not v.startswith("Pedestrian") for v in vehicles.values())
-    completer = VehicleCompleter(GGDNet(TINY), labels=("car", "truck"), min_points=1, margin=0.1)
+    prep = Preprocessing(min_points=1)
     cars = {u: c for u, c in vehicles.items() if c == "Car"}
-    few = collect_tracks(sequence, cars, completer, frames=range(0, 6))
+    few = collect_tracks(sequence, cars, prep, frames=range(0, 6))
     uuid = max(few, key=lambda u: len(few[u].aggregate()))
     track_few = few[uuid]
-    track_many = collect_tracks(sequence, {uuid: "Car"}, completer, frames=range(0, 24))[uuid]
+    track_many = collect_tracks(sequence, {uuid: "Car"}, prep, frames=range(0, 24))[uuid]
     assert len(track_few.frames) >= 3
     assert set(track_few.frames) < set(track_many.frames)
     assert len(track_many.aggregate()) > len(track_few.aggregate()) > 1000
@@ -316,3 +316,16 @@ def test_evaluate_command_skips_missing_pandaset(tmp_path, capsys):
     assert f"Skipped: {tmp_path / 'absent'} not found" in text
     assert "note: test model" in text and "N_c = 32" in text
     assert "## Synthetic" not in text and not list((tmp_path / "out").glob("*.png"))
+
+
+def test_f_score_hand_computed():
+    out = np.array([[0.0, 0, 0], [1, 0, 0]], np.float32)
+    gt = np.array([[0.0, 0, 0.005], [5, 0, 0]], np.float32)
+    assert float(metrics.f_score(out, gt)) == pytest.approx(0.5)          # precision 1/2, recall 1/2
+    assert float(metrics.f_score(out, out)) == 1.0
+    assert float(metrics.f_score(out, out + 10)) == 0.0
+    three = np.array([[0.0, 0, 0], [0.02, 0, 0], [0.04, 0, 0]], np.float32)
+    # precision 1/2 (out[0] only), recall 1/3 (three[0] only): F = 2 * (1/2 * 1/3) / (1/2 + 1/3) = 0.4
+    assert float(metrics.f_score(out, three)) == pytest.approx(0.4)
+    batch = metrics.f_score(np.stack([out, out]), np.stack([gt, out]))
+    np.testing.assert_allclose(batch.numpy(), [0.5, 1.0])

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from gd_completion.geometry import Box3D, normalize
-from gd_completion.model.checkpoint import DEFAULT_WEIGHTS
-from gd_completion.pipeline import LABEL_IDS, VehicleCompleter, completion_to_structured, resample_indices
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.pipeline import LABEL_IDS, VehicleCompleter, completion_to_structured
+from gd_completion.preprocess import Preprocessing, resample_indices
 
 
 def box_surface_points(box: Box3D, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -24,7 +25,7 @@ def box_surface_points(box: Box3D, n: int, rng: np.random.Generator) -> np.ndarr
 
 @pytest.fixture(scope="module")
 def completer() -> VehicleCompleter:
-    return VehicleCompleter.from_checkpoint(None, min_points=20, margin=0.1, ground_clearance=0.0)
+    return VehicleCompleter(load_model(DEFAULT_WEIGHTS), preprocessing=Preprocessing(ground_clearance=0.0))
 
 
 @pytest.fixture()
@@ -99,6 +100,5 @@ def test_empty_inputs(completer: VehicleCompleter) -> None:
 def test_resample_indices_down_and_up() -> None:
     rng = np.random.default_rng(1)
     big, small = rng.normal(size=(3000, 3)).astype(np.float32), rng.normal(size=(5, 3)).astype(np.float32)
-    picks = resample_indices([3000, 5], [big, small], 1024)
-    assert len(np.unique(picks[0])) == 1024  # FPS picks distinct points
-    np.testing.assert_array_equal(picks[1], np.arange(1024) % 5)
+    assert len(np.unique(resample_indices(3000, big, 1024))) == 1024  # FPS picks distinct points
+    np.testing.assert_array_equal(resample_indices(5, small, 1024), np.arange(1024) % 5)

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from gd_completion.model.network import GGDNet
-from gd_completion.pipeline import resample_indices
+from gd_completion.preprocess import network_input
 
 # Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s).
 BASELINE_NAMES: tuple[str, ...] = ("input", "mirror", "generation", "ggd")
@@ -44,8 +44,7 @@ def _resampled(clouds: Sequence[np.ndarray], n: int) -> np.ndarray:
     empty = [i for i, c in enumerate(clouds) if len(c) == 0]
     if empty:
         raise ValueError(f"cannot complete empty clouds (indices {empty})")
-    picks = resample_indices([len(c) for c in clouds], clouds, n)
-    return np.stack([c[idx] for c, idx in zip(clouds, picks)]).astype(np.float32)
+    return np.stack([network_input(c, n) for c in clouds])
 
 
 @torch.inference_mode()

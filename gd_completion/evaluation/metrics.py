@@ -1,9 +1,13 @@
-"""Completion metrics (normalised box frame): Chamfer-L2 and its two directions, Fidelity, Coverage error."""
+"""Completion metrics (normalised box frame): Chamfer-L2 and its two directions, Fidelity, Coverage error,
+F-score. The one place these are defined; the training loss (`model.losses.chamfer_l2`) is their
+differentiable twin, tested against them."""
 from __future__ import annotations
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from gd_completion.model.ops import gather_points, nearest_index
 
 # Report units: Chamfer (and its directions) x1e4 at 2048 points, Fidelity and Coverage error x1e3.
 CD_SCALE = 1e4
@@ -27,32 +31,19 @@ def nearest_sq_distance(query: np.ndarray | Tensor, target: np.ndarray | Tensor,
                         chunk_entries: int = CHUNK_ENTRIES) -> Tensor:
     """Squared distance from each query point to its nearest target point: (B, Nq) (or (Nq,) unbatched).
 
-    The nearest neighbour is found with |q|^2 + |t|^2 - 2 q.t on clouds centred on the target's mean
-    (per cloud, query chunks of at most `chunk_entries` entries), then its distance is recomputed exactly from
-    the coordinate differences, so coincident points give exactly 0. An empty target gives +inf.
+    The nearest neighbour is the one the training loss uses (`model.ops.nearest_index`); its distance is
+    recomputed exactly from the coordinate differences, so coincident points give exactly 0. An empty
+    target gives +inf.
     """
     q, single = _batched(query)
     t, _ = _batched(target)
     if q.shape[0] != t.shape[0]:
         raise ValueError(f"batch sizes differ: {tuple(q.shape)} vs {tuple(t.shape)}")
-    b, nq, nt = q.shape[0], q.shape[1], t.shape[1]
-    if nt == 0:
-        out = torch.full((b, nq), float("inf"))
+    if t.shape[1] == 0:
+        out = torch.full(q.shape[:2], float("inf"))
     else:
-        out = torch.empty(b, nq)
-        step = max(1, chunk_entries // nt)
         with torch.no_grad():
-            for i in range(b):  # one cloud at a time: big query chunks, no (B, chunk, Nt) buffers
-                ti = t[i]
-                centre = ti.mean(0, keepdim=True)
-                tc = ti - centre
-                tt = (tc * tc).sum(-1)  # (Nt,)
-                tc_t = tc.t().contiguous()
-                for start in range(0, nq, step):
-                    qs = q[i, start:start + step]
-                    approx = torch.addmm(tt, qs - centre, tc_t, alpha=-2.0)  # |t|^2 - 2 q.t (argmin only)
-                    nearest = approx.argmin(-1)
-                    out[i, start:start + step] = (qs - ti[nearest]).pow(2).sum(-1)
+            out = (q - gather_points(t, nearest_index(q, t, chunk_entries))).pow(2).sum(-1)
     return out[0] if single else out
 
 
@@ -82,6 +73,25 @@ def fidelity(partial: np.ndarray | Tensor, output: np.ndarray | Tensor) -> Tenso
 def coverage_error(reference: np.ndarray | Tensor, output: np.ndarray | Tensor) -> Tensor:
     """Coverage error: mean squared distance from each reference point to its nearest output point (unscaled)."""
     return _mean(nearest_sq_distance(reference, output))
+
+
+# F-score threshold (normalised frame: 1 % of the vehicle length), as in the completion literature (F-Score@1%).
+F_SCORE_THRESHOLD = 0.01
+
+
+def f_score(output: np.ndarray | Tensor, gt: np.ndarray | Tensor, threshold: float = F_SCORE_THRESHOLD) -> Tensor:
+    """F-score at `threshold`: harmonic mean of precision (output points within `threshold` of the ground
+    truth) and recall (ground-truth points within `threshold` of the output); 0 when both are 0."""
+    return f_score_of(nearest_sq_distance(output, gt), nearest_sq_distance(gt, output), threshold)
+
+
+def f_score_of(output_to_gt: Tensor, gt_to_output: Tensor, threshold: float = F_SCORE_THRESHOLD) -> Tensor:
+    """`f_score` from the two directions' squared nearest distances (as `nearest_sq_distance` gives them)."""
+    t2 = threshold * threshold
+    precision = (output_to_gt <= t2).float().mean(-1)
+    recall = (gt_to_output <= t2).float().mean(-1)
+    total = precision + recall
+    return torch.where(total > 0, 2 * precision * recall / total.clamp_min(1e-12), torch.zeros_like(total))
 
 
 # Ground-truth points within this distance of an input point count as observed (normalised frame).

@@ -4,17 +4,16 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from gd_completion.datasets import normalise_label
 from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_sensor
 from gd_completion.errors import DataFormatError
-from gd_completion.geometry import Box3D
+from gd_completion.geometry import Box3D, box_problem, finite_mask
 from gd_completion.model.network import GGDNet
-from gd_completion.pipeline import FrameStats, VehicleCompleter
+from gd_completion.preprocess import Preprocessing, crop_vehicles
 
 from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs
 from .metrics import COVERAGE_SCALE, FIDELITY_SCALE, coverage_error, fidelity
@@ -85,9 +84,9 @@ def stationary_vehicles(sequence: PandaSetSequence, sensor: int = PANDAR64) -> d
     return found
 
 
-def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], completer: VehicleCompleter, *,
+def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: Preprocessing, *,
                    frames: Sequence[int] | None = None, sensor: int = PANDAR64) -> dict[str, VehicleTrack]:
-    """In-box points of `vehicles` (uuid -> class) in every frame, through the pipeline's crop+normalise.
+    """In-box points of `vehicles` (uuid -> class) in every frame, through the preprocessing contract (`prep`).
 
     Points and cuboids are both in the world frame, so each frame's world box takes its points into the
     box frame; the uuid links frames. Frames without a lidar file are skipped.
@@ -99,11 +98,13 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], complet
         boxes = [world_box_to_sensor(r, eye, zero, sequence.track_ids.get(str(r.get("uuid")), 0))
                  for r in sequence.cuboids(index)
                  if str(r.get("uuid")) in tracks and int(r.get("cuboids.sensor_id", -1)) in (-1, sensor)]
+        boxes = [b for b in boxes if box_problem(b) is None]
         if not boxes:
             continue
         arrays = sequence.load_lidar(index)
         points = arrays["xyz"][arrays["sensor"] == sensor]
-        for vehicle in completer.prepare(points, boxes, FrameStats()):
+        points = points[finite_mask(points)]
+        for vehicle in crop_vehicles(points, boxes, prep)[0]:
             track = by_id[vehicle.box.instance_id]
             track.frames.append(int(index))
             track.points.append(vehicle.normalized)
@@ -158,8 +159,12 @@ class PandaSetResult:
 
 def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle: int | None = 10,
                       max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS,
-                      max_batch: int = 32, n_examples: int = 4, frames: Sequence[int] | None = None) -> PandaSetResult:
+                      max_batch: int = 32, n_examples: int = 4, frames: Sequence[int] | None = None,
+                      preprocessing: Preprocessing | None = None) -> PandaSetResult:
     """Complete single frames of every stationary PandaSet vehicle and compare with its multi-frame aggregate.
+
+    `preprocessing`: the model's contract (its checkpoint's; default the contract's defaults); every frame
+    with at least one point is collected (the aggregate), inputs need MIN_INPUT_POINTS.
 
     Inputs with >= 50 Pandar64 points in the box; at most `max_frames_per_vehicle` frames per vehicle
     (evenly spaced); vehicles whose aggregate comes from a single frame are left out (no multi-frame reference).
@@ -171,9 +176,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     n_candidates = len(vehicles)
     if max_vehicles is not None:
         vehicles = dict(list(vehicles.items())[:max_vehicles])
-    completer = VehicleCompleter(model, labels={normalise_label(c) for c in vehicles.values()},
-                                 min_points=1)
-    tracks = collect_tracks(sequence, vehicles, completer, frames=frames)
+    prep = replace(preprocessing or Preprocessing(), min_points=1)
+    tracks = collect_tracks(sequence, vehicles, prep, frames=frames)
     seconds["load+crop"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()

@@ -32,14 +32,17 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> 
 
 
 def synthetic_section(result: SyntheticResult) -> str:
-    """Table of CD x1e4, CD(D,G), CD(G,D) and Fidelity x1e3 per baseline on the held-out synthetic set."""
+    """Table of CD x1e4, CD(D,G), CD(G,D), F-score@1% and Fidelity x1e3 per baseline on the held-out synthetic set."""
     rows = [[BASELINE_TITLES[n], result.metrics[n]["cd"], result.metrics[n]["cd_dg"], result.metrics[n]["cd_gd"],
-             result.metrics[n]["fidelity"]] for n in BASELINE_NAMES]
+             result.metrics[n]["f_score"], result.metrics[n]["fidelity"]] for n in BASELINE_NAMES]
     sizes = ", ".join(f"{BASELINE_TITLES[n]} {result.points[n]}" for n in BASELINE_NAMES if n in result.points)
     return (f"## Synthetic held-out set\n\n{result.n_samples} pairs from {result.source}, ground truth of "
             f"{result.n_gt} points; normalised frame (vehicle length = 1). Output points: {sizes}.\n\n"
-            + markdown_table(["method", "CD x1e4", "CD(D,G) x1e4", "CD(G,D) x1e4", "Fidelity x1e3"], rows)
-            + "\n\nCD(D,G): output -> ground truth (fidelity-like); CD(G,D): ground truth -> output (completeness)."
+            + markdown_table(["method", "CD x1e4", "CD(D,G) x1e4", "CD(G,D) x1e4", "F-score@1%", "Fidelity x1e3"],
+                             rows)
+            + "\n\nCD(D,G): output -> ground truth (fidelity-like); CD(G,D): ground truth -> output (completeness); "
+            "F-score@1%: harmonic mean of the fractions of output and ground-truth points within 0.01 (1 % of "
+            "the vehicle length) of the other cloud."
             + floor_text(result) + "\n\n" + region_section(result))
 
 
@@ -50,7 +53,8 @@ def floor_text(result: SyntheticResult) -> str:
     floor = result.floor["cd"]
     gen, ggd = result.metrics["generation"]["cd"], result.metrics["ggd"]["cd"]
     return (f"\n\nMetric floor: a second uniform {result.n_gt}-point sample of the true surface scores CD {floor:.3f} "
-            f"(CD(D,G) {result.floor['cd_dg']:.3f}, CD(G,D) {result.floor['cd_gd']:.3f}) against the ground truth: "
+            f"(CD(D,G) {result.floor['cd_dg']:.3f}, CD(G,D) {result.floor['cd_gd']:.3f}, F-score@1% "
+            f"{result.floor.get('f_score', float('nan')):.3f}) against the ground truth: "
             f"that is what a perfect completion scores at this sampling density. Above the floor, generation only "
             f"{gen - floor:.3f} and GGD-Net {ggd - floor:.3f}: the deformation removes "
             f"{100 * (1 - (ggd - floor) / (gen - floor)) if gen > floor else float('nan'):.0f} % of the generation "

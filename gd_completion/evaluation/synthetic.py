@@ -16,11 +16,20 @@ from gd_completion.model.network import GGDNet
 from gd_completion.synth.dataset import build_dataset, load_dataset
 
 from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs
-from .metrics import CD_SCALE, FIDELITY_SCALE, fidelity, nearest_sq_distance, observed_mask, region_means
+from .metrics import (
+    CD_SCALE,
+    FIDELITY_SCALE,
+    f_score_of,
+    fidelity,
+    nearest_sq_distance,
+    observed_mask,
+    region_means,
+)
 
 # Seeds from EVAL_SEED up are reserved for evaluation; training sets must use seeds below it.
 EVAL_SEED = 9_000_000
-SYNTHETIC_METRICS: tuple[str, ...] = ("cd", "cd_dg", "cd_gd", "fidelity", "cd_gd_observed", "cd_gd_unobserved")
+SYNTHETIC_METRICS: tuple[str, ...] = ("cd", "cd_dg", "cd_gd", "f_score", "fidelity", "cd_gd_observed",
+                                      "cd_gd_unobserved")
 
 
 @dataclass
@@ -93,11 +102,13 @@ def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path 
 
 
 def _chamfer_row(output: np.ndarray, complete: np.ndarray) -> tuple[dict[str, float], Tensor]:
-    """{cd, cd_dg, cd_gd} x1e4 averaged over the pairs, and the per-point ground truth -> output distances."""
+    """{cd, cd_dg, cd_gd} x1e4 and F-score@1% averaged over the pairs, and the per-point ground truth -> output
+    distances."""
     to_truth, to_output = nearest_sq_distance(output, complete), nearest_sq_distance(complete, output)
     dg, gd = to_truth.mean(-1), to_output.mean(-1)
     return {"cd": float((dg + gd).mean()) * CD_SCALE, "cd_dg": float(dg.mean()) * CD_SCALE,
-            "cd_gd": float(gd.mean()) * CD_SCALE}, to_output
+            "cd_gd": float(gd.mean()) * CD_SCALE,
+            "f_score": float(f_score_of(to_truth, to_output).mean())}, to_output
 
 
 def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray, *, seed: int | None = None,

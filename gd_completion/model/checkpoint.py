@@ -9,6 +9,7 @@ import torch
 
 from ..atomic import atomic_path
 from ..errors import CheckpointError
+from ..preprocess import Preprocessing
 from .config import GGDConfig
 from .network import GGDNet
 
@@ -17,13 +18,16 @@ FORMAT = "gd_completion.ggdnet"
 FORMAT_VERSION = 1
 
 
-def save_checkpoint(path: str | os.PathLike, model: GGDNet, **extra: Any) -> Path:
-    """Write model weights, config and `extra` (plain tensors/str/int/float/dicts) atomically to `path`."""
+def save_checkpoint(path: str | os.PathLike, model: GGDNet, preprocessing: Preprocessing | None = None,
+                    **extra: Any) -> Path:
+    """Write model weights, config, the preprocessing contract the model was trained with (default: the
+    contract's defaults) and `extra` (plain tensors/str/int/float/dicts) atomically to `path`."""
     path = Path(path)
-    reserved = {"format", "format_version", "config", "state_dict"} & set(extra)
+    reserved = {"format", "format_version", "config", "preprocessing", "state_dict"} & set(extra)
     if reserved:
         raise ValueError(f"save_checkpoint: reserved keys in extra: {sorted(reserved)}")
     data = {"format": FORMAT, "format_version": FORMAT_VERSION, "config": model.config.to_dict(),
+            "preprocessing": (preprocessing or Preprocessing()).to_dict(),
             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, **extra}
     with atomic_path(path) as tmp:
         torch.save(data, tmp)
@@ -70,6 +74,21 @@ def model_from_checkpoint(data: dict[str, Any], path: str | os.PathLike, device:
     return model.to(device).eval()
 
 
+def preprocessing_from_checkpoint(data: dict[str, Any], path: str | os.PathLike) -> Preprocessing:
+    """The checkpoint's `preprocessing` entry; a checkpoint from before the contract gets its defaults."""
+    try:
+        return Preprocessing.from_dict(data.get("preprocessing"))
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"checkpoint {path}: invalid preprocessing: {exc}") from exc
+
+
 def load_model(path: str | os.PathLike = DEFAULT_WEIGHTS, device: str | torch.device = "cpu") -> GGDNet:
     """Load a GGDNet (config from the checkpoint) in eval mode on `device`; CheckpointError on bad files."""
     return model_from_checkpoint(read_checkpoint(path, device), path, device)
+
+
+def load_checkpoint(path: str | os.PathLike = DEFAULT_WEIGHTS, device: str | torch.device = "cpu"
+                    ) -> tuple[GGDNet, Preprocessing]:
+    """(model in eval mode on `device`, the preprocessing it was trained with); CheckpointError on bad files."""
+    data = read_checkpoint(path, device)
+    return model_from_checkpoint(data, path, device), preprocessing_from_checkpoint(data, path)

@@ -4,23 +4,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .ops import flat_index, gather_points, neighbour_mean, square_distance
+from .ops import flat_index, gather_points, nearest_index, neighbour_mean
 
 # Chamfer and Laplacian terms are reported in units of 1e-3 (normalised frame), as in the paper.
 CD_SCALE = 1000.0
 
 
-def _nearest(a: Tensor, b: Tensor, chunk_entries: int) -> Tensor:
-    bsz, na, _ = a.shape
-    rows = max(1, chunk_entries // max(bsz * b.shape[1], 1))
-    return torch.cat([square_distance(a[:, s:s + rows], b).argmin(2) for s in range(0, na, rows)], 1)
-
-
-def nearest_indices(a: Tensor, b: Tensor, chunk_entries: int = 1 << 20) -> tuple[Tensor, Tensor]:
-    """(nearest b of every a (B, Na), nearest a of every b (B, Nb)), no gradient, in row chunks
-    (two row-wise searches: reductions along the contiguous axis are much faster on CPU)."""
-    with torch.no_grad():
-        return _nearest(a, b, chunk_entries), _nearest(b, a, chunk_entries)
+def nearest_indices(a: Tensor, b: Tensor, chunk_entries: int = 1 << 22) -> tuple[Tensor, Tensor]:
+    """(nearest b of every a (B, Na), nearest a of every b (B, Nb)), no gradient (`ops.nearest_index`)."""
+    return nearest_index(a, b, chunk_entries), nearest_index(b, a, chunk_entries)
 
 
 def chamfer_l2_directional(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:

@@ -102,14 +102,27 @@ def farthest_point_sample(xyz: Tensor, n: int) -> Tensor:
     return idx
 
 
-def square_distance(a: Tensor, b: Tensor) -> Tensor:
-    """Squared Euclidean distances (B, Na, Nb) between a (B, Na, 3) and b (B, Nb, 3), >= 0."""
-    aa = (a * a).sum(-1, keepdim=True)
-    bb = (b * b).sum(-1, keepdim=True)
-    # one GEMM on augmented coordinates [a, |a|^2, 1] . [-2b, 1, |b|^2]: no broadcast copy of the output
-    lhs = torch.cat([a, aa, torch.ones_like(aa)], -1)
-    rhs = torch.cat([-2.0 * b, torch.ones_like(bb), bb], -1)
-    return torch.bmm(lhs, rhs.transpose(1, 2)).clamp_min_(0.0)
+def nearest_index(query: Tensor, target: Tensor, chunk_entries: int = 1 << 22) -> Tensor:
+    """Index (B, Nq) long of the nearest `target` point of every `query` point (B, Nq, 3) / (B, Nt, 3), Nt > 0.
+
+    One cloud at a time, in query chunks of at most `chunk_entries` distance entries: the argmin of
+    |t|^2 - 2 q.t (one GEMM) on clouds centred on the target's mean (small coordinates, little
+    cancellation). No gradient; callers recompute the distances to these points exactly (Chamfer loss
+    and metrics).
+    """
+    b, nq, nt = query.shape[0], query.shape[1], target.shape[1]
+    out = torch.empty(b, nq, dtype=torch.long, device=query.device)
+    step = max(1, chunk_entries // max(nt, 1))
+    with torch.no_grad():
+        for i in range(b):
+            centre = target[i].mean(0, keepdim=True)
+            tc = target[i] - centre
+            tt = (tc * tc).sum(-1)
+            tc_t = tc.t().contiguous()
+            for start in range(0, nq, step):
+                approx = torch.addmm(tt, query[i, start:start + step] - centre, tc_t, alpha=-2.0)
+                out[i, start:start + step] = approx.argmin(-1)
+    return out
 
 
 def flat_index(idx: Tensor, n: int) -> Tensor:

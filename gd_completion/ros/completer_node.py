@@ -73,7 +73,8 @@ class CompleterNode(Node):
         p = self.params
         self.completer = completer or VehicleCompleter.from_checkpoint(
             p.model_path or None, device=p.device, num_threads=p.num_threads or None, labels=p.labels,
-            min_points=p.min_points, margin=p.crop_margin, include_input_points=p.include_input_points)
+            min_points=p.min_points or None, crop_margin=p.crop_margin if p.crop_margin >= 0 else None,
+            include_input_points=p.include_input_points)
         check_model_sizes(p, self.completer.num_input, self.completer.num_output, p.model_path or "(shipped weights)")
         self.completer.warm_up()
         boxes_cls, self._to_boxes, boxes_type_name = resolve_boxes_type(p.boxes_type)

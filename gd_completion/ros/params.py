@@ -65,8 +65,10 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                             "from the checkpoint).", _int(0, 65536)),
     "num_output_points": (0, "Points the network generates per vehicle; must match the checkpoint (0 = take it "
                              "from the checkpoint).", _int(0, 65536)),
-    "min_points": (20, "Vehicles with fewer measured points inside their box are skipped.", _int(1, 1000000)),
-    "crop_margin": (0.1, "Metres added to each side of a box when cropping its points.", _float(0.0, 5.0)),
+    "min_points": (0, "Vehicles with fewer measured points above the ground in their box are skipped; 0 = the "
+                      "checkpoint's preprocessing (20 for the shipped weights).", _int(0, 1000000)),
+    "crop_margin": (-1.0, "Metres added to each side of a box when cropping its points; -1 = the checkpoint's "
+                          "preprocessing (0.1 for the shipped weights).", _float(-1.0, 5.0)),
     "labels": (["car", "van", "truck"], f"Labels to complete (of {sorted(LABEL_IDS)}).", {}),
     "class_map": (["1:car", "2:van", "3:truck", "Car:car", "Van:van", "Truck:truck",
                    "Pedestrian:ignore", "Cyclist:ignore"],
@@ -109,6 +111,9 @@ def validate(values: dict[str, Any]) -> CompleterParams:
         class_map = parse_class_map(values["class_map"])
     except BoxError as exc:
         raise ParameterError(f"parameter class_map: {exc}") from exc
+    if values["crop_margin"] != -1.0 and values["crop_margin"] < 0.0:
+        raise ParameterError(f"parameter crop_margin={values['crop_margin']} must be -1 (the checkpoint's) "
+                             "or in [0, 5]")
     for name in ("cloud_topic", "boxes_topic", "output_topic"):
         if not str(values[name]).strip():
             raise ParameterError(f"parameter {name} must not be empty")

@@ -12,8 +12,8 @@ import numpy as np
 
 from gd_completion.atomic import atomic_path
 from gd_completion.errors import DataFormatError
-from gd_completion.geometry import Box3D, crop_boxes, normalize
-from gd_completion.pipeline import resample_indices
+from gd_completion.geometry import Box3D, normalize
+from gd_completion.preprocess import Preprocessing, crop_vehicles, network_input
 from gd_completion.synth.lidar import BeamPattern, scan_meshes
 from gd_completion.synth.meshio import Mesh, load_mesh_folder, sample_surface
 from gd_completion.synth.vehicles import VEHICLE_KINDS, generate_vehicle, perturb_mesh, vehicle_label
@@ -24,10 +24,6 @@ __all__ = ["GENERATOR_VERSION", "DEFAULT_PATTERNS", "make_sample", "build_datase
 GENERATOR_VERSION = "gd_completion.synth/1"
 DEFAULT_PATTERNS = ("hdl64e", "pandar64", "pandar40p")
 _SEED_TAG = 0x6D5A7E
-# Same defaults as gd_completion.pipeline.VehicleCompleter, so training partials look like the node's input.
-CROP_MARGIN = 0.1
-GROUND_CLEARANCE = 0.1
-MIN_POINTS = 20
 _POINT_KEYS = ("partial", "complete")
 
 
@@ -68,18 +64,27 @@ def _occluder(rng: np.random.Generator, dist: float, az: float) -> Mesh | None:
     return occ.transformed(rng.uniform(-np.pi, np.pi), (d * np.cos(a), d * np.sin(a), occ.extent[2] / 2))
 
 
+def network_partial(points: np.ndarray, box: Box3D, prep: Preprocessing, n_input: int
+                    ) -> tuple[np.ndarray, int] | None:
+    """(network input (n_input, 3), points kept) of a scan of one vehicle through the preprocessing contract,
+    exactly as the node feeds it; None when fewer than `prep.min_points` points remain."""
+    vehicles, _ = crop_vehicles(points, [box], prep)
+    if not vehicles:
+        return None
+    return network_input(vehicles[0].normalized, n_input), len(vehicles[0].normalized)
+
+
 def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Mesh] | None = None, *,
                 pattern: BeamPattern | str | Sequence[str] = DEFAULT_PATTERNS, n_input: int = 1024,
-                n_gt: int = 2048, margin: float = CROP_MARGIN, ground_clearance: float = GROUND_CLEARANCE,
-                min_points: int = MIN_POINTS, max_attempts: int = 60,
+                n_gt: int = 2048, preprocessing: Preprocessing | None = None, max_attempts: int = 60,
                 surface_resample: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """One training pair: (partial (n_input,3), complete (n_gt,3)) float32 normalised by the vehicle's box.
 
     `shape_source`: None or "procedural" (random kind), a kind name, a Mesh, or a list of meshes (one is
     drawn, randomly scaled and deformed). The vehicle stands on the ground 5-50 m from a sensor 1.7-2.0 m
-    high, at any azimuth and heading; the scan is cropped and normalised with `gd_completion.geometry` and
-    resampled like `gd_completion.pipeline` does (FPS down, cyclic repetition up). Poses giving fewer than
-    `min_points` points are re-drawn (the shape too, every 10 attempts). `surface_resample` adds
+    high, at any azimuth and heading; the scan goes through the node's preprocessing (`gd_completion.preprocess`
+    with `preprocessing`, default the contract's defaults). Poses giving fewer than its `min_points` points
+    are re-drawn (the shape too, every 10 attempts). `surface_resample` adds
     meta["surface_resample"]: a second, independent uniform sample of the same surface (drawn last, so the
     pair is the same with or without it), whose Chamfer distance to `complete` is the metric's floor.
     """
@@ -89,6 +94,8 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
         names = [pattern] if isinstance(pattern, str) else list(pattern)
         patterns = [BeamPattern.named(names[int(rng.integers(len(names)))])]
     pat = patterns[0]
+    prep = preprocessing or Preprocessing()
+    margin = prep.crop_margin
     for attempt in range(max_attempts):
         if attempt % 10 == 0:
             mesh, kind, label = _draw_shape(rng, shape_source)
@@ -104,22 +111,19 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
                            azimuth_range=window, ground_z=0.0)
         box = Box3D(center=tuple(float(c) for c in centre), size=tuple(float(s) for s in size),
                     yaw=float(yaw), label=label, instance_id=0)
-        idx = crop_boxes(scan.points, [box], margin)[0]
-        normalized = normalize(scan.points[idx], box)
-        keep = normalized[:, 2] * size[0] >= -size[2] / 2 + ground_clearance
-        part = normalized[keep].astype(np.float32)
-        if len(part) >= min_points:
+        found = network_partial(scan.points, box, prep, n_input)
+        if found is not None:
+            partial, n_points = found
             break
     else:
-        raise RuntimeError(f"make_sample: no pose gave {min_points} points in {max_attempts} attempts")
-    pick = resample_indices([len(part)], [part], n_input)[0]
+        raise RuntimeError(f"make_sample: no pose gave {prep.min_points} points in {max_attempts} attempts")
     gt = normalize(sample_surface(world, n_gt, rng), box).astype(np.float32)
-    meta = {"kind": kind, "label": label, "pattern": pat.name, "n_points": int(len(part)), "distance": float(dist),
+    meta = {"kind": kind, "label": label, "pattern": pat.name, "n_points": n_points, "distance": float(dist),
             "azimuth": float(az), "yaw": float(yaw), "sensor_height": float(sensor_h), "size": size.astype(np.float32),
             "occluded": occluder is not None, "attempts": attempt + 1}
     if surface_resample:
         meta["surface_resample"] = normalize(sample_surface(world, n_gt, rng), box).astype(np.float32)
-    return part[pick], gt, meta
+    return partial, gt, meta
 
 
 _WORKER_MESHES: dict[str, list[Mesh]] = {}
@@ -134,7 +138,7 @@ def _meshes(meshes_dir: str | None) -> list[Mesh] | None:
 
 
 def _make_range(args: tuple) -> list[tuple[np.ndarray, np.ndarray, dict]]:
-    start, stop, seed, meshes_dir, patterns, n_input, n_gt, mesh_fraction, resample = args
+    start, stop, seed, meshes_dir, patterns, n_input, n_gt, mesh_fraction, resample, prep = args
     try:  # one thread per worker: FPS runs in torch
         import torch
         torch.set_num_threads(1)
@@ -145,20 +149,24 @@ def _make_range(args: tuple) -> list[tuple[np.ndarray, np.ndarray, dict]]:
     for i in range(start, stop):
         rng = sample_rng(seed, i)
         source = meshes if meshes and rng.random() < mesh_fraction else None
-        out.append(make_sample(rng, source, pattern=patterns, n_input=n_input, n_gt=n_gt, surface_resample=resample))
+        out.append(make_sample(rng, source, pattern=patterns, n_input=n_input, n_gt=n_gt,
+                               preprocessing=Preprocessing.from_dict(prep), surface_resample=resample))
     return out
 
 
 def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = None,
                   patterns: Sequence[str] = DEFAULT_PATTERNS, workers: int = 1, n_input: int = 1024,
-                  n_gt: int = 2048, mesh_fraction: float = 0.3, surface_resample: bool = False) -> dict[str, Any]:
+                  n_gt: int = 2048, mesh_fraction: float = 0.3, surface_resample: bool = False,
+                  preprocessing: Preprocessing | None = None) -> dict[str, Any]:
     """`n_samples` pairs, deterministic for `seed` whatever `workers` is (sample i uses `sample_rng(seed, i)`).
 
     With `meshes_dir`, a fraction `mesh_fraction` of the shapes come from that folder's meshes, the rest
     are procedural. Returns arrays `partial` (S,n_input,3), `complete` (S,n_gt,3) float32, `n_points`,
     `size` (S,3), `distance`, `yaw`, `label`, `kind`, `pattern`, and a `metadata` dict; with
     `surface_resample`, also `surface_resample` (S,n_gt,3) (see `make_sample`; the other arrays are unchanged).
+    `preprocessing` (default: the contract's defaults) is recorded in metadata["preprocessing"].
     """
+    prep = preprocessing or Preprocessing()
     patterns = tuple(patterns)
     for name in patterns:
         BeamPattern.named(name)  # fail early on a bad name
@@ -168,7 +176,7 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
     workers = max(1, min(int(workers), n_samples or 1))
     step = max(1, -(-n_samples // (workers * 4)))
     jobs = [(s, min(s + step, n_samples), int(seed), mdir, patterns, n_input, n_gt, mesh_fraction,
-             bool(surface_resample)) for s in range(0, n_samples, step)]
+             bool(surface_resample), prep.to_dict()) for s in range(0, n_samples, step)]
     if workers == 1:
         chunks = [_make_range(j) for j in jobs]
     else:
@@ -197,6 +205,7 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
         "meshes_dir": mdir, "mesh_fraction": float(mesh_fraction) if mdir else 0.0,
         "label_counts": {str(k): int(v) for k, v in zip(labels, counts)},
         "normalization": "gd_completion.geometry.normalize (centre, rotate by -yaw, divide by length)",
+        "preprocessing": prep.to_dict(),
     }
     return data
 

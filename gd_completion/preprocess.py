@@ -1,0 +1,105 @@
+"""The preprocessing contract: a vehicle's points in a cloud -> the network's input, and its parameters.
+
+Crop the points inside the box grown by `crop_margin`, normalise them into the box frame (centre on the
+box, rotate by -yaw, divide by the length), drop the ground (the lowest `ground_clearance` metres of the
+box), skip vehicles with fewer than `min_points` points left, resample to the network's input size (FPS
+down, cyclic repetition up). The node, the offline tools, training-data generation and evaluation all
+call these functions; the `Preprocessing` a model was trained with is stored in its checkpoint.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from gd_completion.geometry import Box3D, crop_boxes, normalize
+
+
+@dataclass(frozen=True)
+class Preprocessing:
+    """Parameters of the contract (defaults: the values every model so far was trained with)."""
+
+    crop_margin: float = 0.1       # metres added to each side of the box when cropping
+    ground_clearance: float = 0.1  # points this close to the box floor (metres) are ground, dropped
+    min_points: int = 20           # vehicles with fewer points left are skipped (and never trained on)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.crop_margin) and 0.0 <= self.crop_margin <= 5.0):
+            raise ValueError(f"crop_margin={self.crop_margin} must be in [0, 5] metres")
+        if not (math.isfinite(self.ground_clearance) and 0.0 <= self.ground_clearance <= 2.0):
+            raise ValueError(f"ground_clearance={self.ground_clearance} must be in [0, 2] metres")
+        if int(self.min_points) != self.min_points or self.min_points < 1:
+            raise ValueError(f"min_points={self.min_points} must be an integer >= 1")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict for checkpoints and dataset metadata."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> Preprocessing:
+        """Inverse of `to_dict`; None (a checkpoint from before the contract) gives the defaults.
+        Raises ValueError on unknown keys or invalid values."""
+        if data is None:
+            return cls()
+        if not isinstance(data, dict):
+            raise ValueError(f"preprocessing must be a dict, got {type(data).__name__}")
+        unknown = sorted(set(data) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"unknown preprocessing keys: {unknown}")
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class CroppedVehicle:
+    """One vehicle of a cloud: its box, its measured points above the ground, the same in the box frame."""
+
+    box: Box3D
+    measured: np.ndarray    # (M, 3) float32, cloud frame
+    normalized: np.ndarray  # (M, 3) float32, box frame divided by the length
+
+
+def above_ground(normalized: np.ndarray, box: Box3D, ground_clearance: float) -> np.ndarray:
+    """Bool (M,): normalised points higher than `ground_clearance` metres above the box floor."""
+    return normalized[:, 2] * box.size[0] >= -box.size[2] / 2 + ground_clearance
+
+
+def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessing
+                  ) -> tuple[list[CroppedVehicle], list[Box3D]]:
+    """(vehicles with at least `min_points` points above the ground, boxes skipped for too few points).
+
+    `points` (N, 3) finite, `boxes` valid (see `geometry.box_problem`); both in the same frame.
+    """
+    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    vehicles: list[CroppedVehicle] = []
+    too_few: list[Box3D] = []
+    for box, idx in zip(boxes, crop_boxes(points, boxes, prep.crop_margin)):
+        measured = points[idx]
+        normalized = normalize(measured, box).astype(np.float32, copy=False)
+        keep = above_ground(normalized, box, prep.ground_clearance)
+        if int(keep.sum()) < prep.min_points:
+            too_few.append(box)
+        else:
+            vehicles.append(CroppedVehicle(box, measured[keep], normalized[keep]))
+    return vehicles, too_few
+
+
+def resample_indices(count: int, points: np.ndarray, n: int) -> np.ndarray:
+    """Indices giving exactly `n` of `count` points: farthest point sampling down, cyclic repetition up."""
+    if count <= 0:
+        raise ValueError("cannot resample an empty cloud")
+    if count <= n:
+        return np.arange(n) % count
+    import torch
+
+    from gd_completion.model.ops import farthest_point_sample  # compiled kernel on the CPU
+    cloud = torch.from_numpy(np.ascontiguousarray(points[:count], dtype=np.float32)).unsqueeze(0)
+    return farthest_point_sample(cloud, n)[0].numpy()
+
+
+def network_input(normalized: np.ndarray, n: int) -> np.ndarray:
+    """(n, 3) float32: a vehicle's normalised points brought to the network's input size."""
+    normalized = np.asarray(normalized, dtype=np.float32).reshape(-1, 3)
+    return normalized[resample_indices(len(normalized), normalized, n)]

@@ -1,0 +1,150 @@
+"""The preprocessing contract: one network input for one cloud and box, whoever calls; stored in checkpoints."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gd_completion.errors import CheckpointError
+from gd_completion.geometry import Box3D
+from gd_completion.model import GGDNet
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, load_model, save_checkpoint
+from gd_completion.pipeline import FrameStats, VehicleCompleter
+from gd_completion.preprocess import Preprocessing, crop_vehicles, network_input, resample_indices
+
+
+class Recording(torch.nn.Module):
+    """A GGDNet that keeps every input it is given."""
+
+    def __init__(self, model: GGDNet) -> None:
+        super().__init__()
+        self.model = model
+        self.config = model.config
+        self.inputs: list[torch.Tensor] = []
+
+    def forward(self, x: torch.Tensor):
+        self.inputs.append(x.detach().clone())
+        return self.model(x)
+
+
+@pytest.fixture(scope="module")
+def parked_car(shared_data) -> tuple[np.ndarray, Box3D]:
+    """PandaSet-002 frame 0 (Pandar64 points, world frame) and the stationary car with the most points."""
+    from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_sensor
+    from gd_completion.evaluation.pandaset_eval import stationary_vehicles
+
+    sequence = PandaSetSequence(shared_data / "pandaset-002")
+    cars = {uuid for uuid, label in stationary_vehicles(sequence).items() if label == "Car"}
+    arrays = sequence.load_lidar(0)
+    points = arrays["xyz"][arrays["sensor"] == 0].astype(np.float32)
+    boxes = [world_box_to_sensor(r, np.eye(3), np.zeros(3), sequence.track_ids[str(r["uuid"])])
+             for r in sequence.cuboids(0) if str(r.get("uuid")) in cars]
+    vehicles, _ = crop_vehicles(points, boxes, Preprocessing())
+    best = max(vehicles, key=lambda v: len(v.measured))
+    assert 200 < len(best.measured) < 5000        # more than the network's 1024 after cropping: FPS runs
+    return points, best.box
+
+
+def test_every_caller_feeds_the_network_the_same_input(parked_car):
+    """The node and `complete` (VehicleCompleter), training-data generation and the evaluation give the
+    network bitwise the same input for the same cloud and box."""
+    from gd_completion.evaluation.baselines import network_outputs
+    from gd_completion.synth.dataset import network_partial
+
+    points, box = parked_car
+    model = Recording(load_model(DEFAULT_WEIGHTS))
+    n = model.config.num_input
+    completion = VehicleCompleter(model).complete_frame(points, [box])         # node and `complete`
+    assert completion.stats.completed == 1
+    pipeline_input = model.inputs[-1][0].numpy()
+    training_input, kept = network_partial(points, box, Preprocessing(), n)    # training-data generation
+    np.testing.assert_array_equal(training_input, pipeline_input)
+    network_outputs(model, [crop_vehicles(points, [box], Preprocessing())[0][0].normalized])   # evaluation
+    np.testing.assert_array_equal(model.inputs[-1][0].numpy(), pipeline_input)
+    assert pipeline_input.shape == (n, 3) and kept > n
+
+
+def test_pandaset_evaluation_crops_through_the_contract(shared_data, parked_car):
+    from gd_completion.datasets.pandaset import PandaSetSequence
+    from gd_completion.evaluation.pandaset_eval import collect_tracks, stationary_vehicles
+
+    points, box = parked_car
+    sequence = PandaSetSequence(shared_data / "pandaset-002")
+    uuid = next(u for u, iid in sequence.track_ids.items() if iid == box.instance_id)
+    track = collect_tracks(sequence, {uuid: stationary_vehicles(sequence)[uuid]}, Preprocessing(), frames=[0])[uuid]
+    vehicles, _ = crop_vehicles(points, [box], Preprocessing())
+    np.testing.assert_array_equal(track.points[0], vehicles[0].normalized)
+
+
+def test_contract_steps_on_hand_made_points():
+    box = Box3D((10.0, 0.0, 0.75), (4.0, 2.0, 1.5), 0.0, "car", 3)
+    inside = np.array([[10.0, 0.0, 1.0], [11.9, 0.9, 1.4], [8.1, -0.9, 0.2]], np.float32)
+    ground = np.array([[10.0, 0.5, 0.05]], np.float32)          # within 0.1 m of the box floor
+    margin = np.array([[12.05, 0.0, 1.0]], np.float32)          # 5 cm past the front face
+    points = np.concatenate([inside, ground, margin])
+    vehicles, too_few = crop_vehicles(points, [box], Preprocessing(crop_margin=0.1, min_points=4))
+    assert len(vehicles) == 1 and too_few == []
+    np.testing.assert_array_equal(vehicles[0].measured, np.concatenate([inside, margin]))
+    np.testing.assert_allclose(vehicles[0].normalized[0], [0.0, 0.0, 0.25 / 4.0])
+    vehicles, too_few = crop_vehicles(points, [box], Preprocessing(crop_margin=0.0, min_points=4))
+    assert vehicles == [] and too_few == [box]                  # the margin point is gone: 3 < 4
+    vehicles, _ = crop_vehicles(points, [box], Preprocessing(ground_clearance=0.0, min_points=1))
+    assert len(vehicles[0].measured) == 5                       # no ground cut: the low point stays
+    np.testing.assert_array_equal(resample_indices(3, inside, 7), [0, 1, 2, 0, 1, 2, 0])
+    big = np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32)
+    assert len(set(resample_indices(50, big, 20).tolist())) == 20
+    assert network_input(big, 20).shape == (20, 3)
+    with pytest.raises(ValueError, match="empty"):
+        network_input(np.zeros((0, 3), np.float32), 20)
+
+
+def test_preprocessing_values_are_checked():
+    assert Preprocessing.from_dict(None) == Preprocessing() == Preprocessing(0.1, 0.1, 20)
+    assert Preprocessing.from_dict(Preprocessing(0.2, 0.0, 5).to_dict()) == Preprocessing(0.2, 0.0, 5)
+    with pytest.raises(ValueError, match="unknown preprocessing keys"):
+        Preprocessing.from_dict({"crop_margin": 0.1, "voxel": 0.05})
+    for bad in ({"crop_margin": -0.5}, {"crop_margin": float("nan")}, {"ground_clearance": 3.0}, {"min_points": 0}):
+        with pytest.raises(ValueError):
+            Preprocessing(**bad)
+
+
+def test_checkpoint_preprocessing_round_trips_and_is_applied(tmp_path):
+    model = load_model(DEFAULT_WEIGHTS)
+    custom = Preprocessing(crop_margin=0.5, ground_clearance=0.0, min_points=5)
+    path = save_checkpoint(tmp_path / "custom.pt", model, custom)
+    loaded_model, loaded = load_checkpoint(path)
+    assert loaded == custom and loaded_model.config == model.config
+    completer = VehicleCompleter.from_checkpoint(path, num_threads=1)
+    assert completer.preprocessing == custom
+    box = Box3D((0.0, 0.0, 0.75), (4.0, 2.0, 1.5), 0.0, "car", 1)
+    rng = np.random.default_rng(2)
+    near = (rng.uniform(-0.5, 0.5, (8, 3)) * [4.0, 2.0, 1.5] + [0.0, 0.0, 0.75]).astype(np.float32)
+    outside = np.array([[2.3, 0.0, 0.8], [-2.3, 0.2, 0.9]], np.float32)    # 0.3 m past the faces
+    points = np.concatenate([near, outside])
+    applied = completer.prepare(points, [box], FrameStats())
+    assert len(applied) == 1 and len(applied[0].measured) == 10        # margin 0.5 and min_points 5 applied
+    default = VehicleCompleter(model).prepare(points, [box], FrameStats())
+    assert default == []                                                 # 8 points < 20 with the defaults
+    overridden = VehicleCompleter.from_checkpoint(path, num_threads=1, crop_margin=0.1)
+    assert overridden.preprocessing == Preprocessing(0.1, 0.0, 5)
+
+
+def test_checkpoint_without_preprocessing_gets_todays_values(tmp_path):
+    data = torch.load(DEFAULT_WEIGHTS, weights_only=True)
+    data.pop("preprocessing", None)
+    torch.save(data, tmp_path / "old.pt")
+    assert load_checkpoint(tmp_path / "old.pt")[1] == Preprocessing(crop_margin=0.1, ground_clearance=0.1,
+                                                                    min_points=20)
+    data["preprocessing"] = {"crop_margin": "wide"}
+    torch.save(data, tmp_path / "bad.pt")
+    with pytest.raises(CheckpointError, match="invalid preprocessing"):
+        load_checkpoint(tmp_path / "bad.pt")
+
+
+def test_training_data_records_its_preprocessing():
+    from gd_completion.synth.dataset import build_dataset
+
+    prep = Preprocessing(crop_margin=0.2, ground_clearance=0.05, min_points=30)
+    data = build_dataset(2, seed=3, n_input=64, n_gt=64, preprocessing=prep)
+    assert data["metadata"]["preprocessing"] == prep.to_dict()
+    assert (data["n_points"] >= 30).all()
