@@ -11,7 +11,7 @@ from gd_completion.errors import BoxError
 
 __all__ = [
     "Box3D", "box_problem", "boxes_to_array", "box_corners", "crop_boxes",
-    "normalize", "denormalize", "finite_mask", "finite_rows",
+    "normalize", "denormalize", "finite_mask",
 ]
 
 # Largest number of grid cells crop_boxes uses for its prefilter.
@@ -86,9 +86,6 @@ def finite_mask(points: np.ndarray) -> np.ndarray:
     """Bool (N,): rows of `points` whose coordinates are all finite."""
     points = np.asarray(points)
     return np.isfinite(points).all(axis=1)
-
-
-finite_rows = finite_mask
 
 
 def _check_points(points: np.ndarray) -> np.ndarray:

@@ -16,7 +16,6 @@ from gd_completion.geometry import (
     crop_boxes,
     denormalize,
     finite_mask,
-    finite_rows,
     normalize,
 )
 
@@ -234,5 +233,4 @@ def test_normalize_refuses_bad_box_and_keeps_empty() -> None:
 def test_finite_mask() -> None:
     pts = np.array([[0, 0, 0], [np.nan, 0, 0], [0, np.inf, 0], [0, 0, -np.inf], [1e30, -1e30, 5]], np.float32)
     np.testing.assert_array_equal(finite_mask(pts), [True, False, False, False, True])
-    assert finite_rows is finite_mask
     assert finite_mask(np.empty((0, 3))).shape == (0,)
