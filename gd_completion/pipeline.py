@@ -1,7 +1,10 @@
 """Completion pipeline: crop and normalise every vehicle of a frame (`preprocess`), complete it, map back."""
 from __future__ import annotations
 
+import math
 import os
+import threading
+import time
 from collections import Counter
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -12,6 +15,7 @@ import numpy as np
 import torch
 
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask
+from gd_completion.limits import FrameLimits, screen_boxes
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles, network_input
@@ -78,6 +82,7 @@ class VehicleCompleter:
         model: GGDNet,
         *,
         preprocessing: Preprocessing | None = None,
+        limits: FrameLimits | None = None,
         labels: Sequence[str] = DEFAULT_LABELS,
         include_input_points: bool = True,
         device: str = "cpu",
@@ -86,6 +91,7 @@ class VehicleCompleter:
         self.model = model.to(device).eval()
         self.device = torch.device(device)
         self.preprocessing = preprocessing or Preprocessing()
+        self.limits = limits or FrameLimits()
         self.labels = frozenset(labels)
         self.include_input_points = bool(include_input_points)
         self.num_input = model.config.num_input
@@ -127,7 +133,8 @@ class VehicleCompleter:
             self._pool = None
 
     def prepare(self, points: np.ndarray, boxes: Sequence[Box3D], stats: FrameStats) -> list[CroppedVehicle]:
-        """Drop non-finite points, filter and validate boxes, crop; counts every skip in `stats`."""
+        """Drop non-finite points, filter, validate and screen boxes (`limits.screen_boxes`), crop; the
+        vehicles nearest first. Counts every skip in `stats`."""
         points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         finite = finite_mask(points)
         stats.nonfinite_points += int(len(points) - finite.sum())
@@ -141,17 +148,33 @@ class VehicleCompleter:
                 stats.skipped["degenerate_box"] += 1
             else:
                 usable.append(box)
-        vehicles, too_few = crop_vehicles(points, usable, self.preprocessing)
+        kept, screened = screen_boxes(usable, self.limits)
+        stats.skipped.update(screened)
+        vehicles, too_few = crop_vehicles(points, [usable[i] for i in kept], self.preprocessing)
         if too_few:
             stats.skipped["too_few_points"] += len(too_few)
+        crowded = [v for v in vehicles if len(v.measured) > self.limits.max_points_per_vehicle]
+        if crowded:
+            stats.skipped["too_many_points"] += len(crowded)
+            vehicles = [v for v in vehicles if len(v.measured) <= self.limits.max_points_per_vehicle]
         return vehicles
 
     def complete_normalized(self, partials: Sequence[np.ndarray]) -> np.ndarray:
         """Complete vehicles given in the normalised box frame; returns (B, num_output, 3) float32."""
         if not len(partials):
             return np.zeros((0, self.num_output, 3), np.float32)
+        return np.stack(self._complete_all(partials, math.inf, None))
+
+    def _complete_all(self, partials: Sequence[np.ndarray], deadline: float, cancel: threading.Event | None
+                      ) -> list[np.ndarray | None]:
+        """Each vehicle's completion in order; None for those not started before `deadline` (time.monotonic)
+        or after `cancel` was set."""
+        def one(partial: np.ndarray) -> np.ndarray | None:
+            if time.monotonic() > deadline or (cancel is not None and cancel.is_set()):
+                return None
+            return self._complete_one(partial)
         run = self._pool.map if self._pool is not None else map
-        return np.stack(list(run(self._complete_one, partials)))
+        return list(run(one, partials))
 
     def _complete_one(self, partial: np.ndarray) -> np.ndarray:
         """Resample one vehicle to the network's input size and complete it (one task of the thread pool)."""
@@ -159,25 +182,42 @@ class VehicleCompleter:
         with torch.inference_mode():   # thread-local: set in the thread that runs the model
             return self.model(cloud.to(self.device)).completion[0].float().cpu().numpy()
 
-    def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D]) -> FrameCompletion:
-        """Complete every vehicle of one frame; points in and out are in the cloud's frame."""
+    def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],
+                       cancel: threading.Event | None = None) -> FrameCompletion:
+        """Complete the vehicles of one frame within `limits`, nearest first; points in and out are in the
+        cloud's frame, vehicles in the output in the order of `boxes`. Vehicles not started when the time
+        budget is spent, or once `cancel` is set, are skipped and counted (`time_budget`, `cancelled`)."""
         stats = FrameStats()
+        deadline = time.monotonic() + self.limits.time_budget_s
         vehicles = self.prepare(points, boxes, stats)
-        completions = self.complete_normalized([v.normalized for v in vehicles])
+        completions = self._complete_all([v.normalized for v in vehicles], deadline, cancel)
+        done = []
+        budget = self.limits.max_output_points
+        for vehicle, completion in zip(vehicles, completions):
+            if completion is None:
+                stats.skipped["cancelled" if cancel is not None and cancel.is_set() else "time_budget"] += 1
+                continue
+            measured = vehicle.measured if self.include_input_points else np.zeros((0, 3), np.float32)
+            if len(measured) + len(completion) > budget:
+                stats.skipped["output_limit"] += 1
+                continue
+            budget -= len(measured) + len(completion)
+            done.append((vehicle, measured, completion))
+        order = {id(box): i for i, box in enumerate(boxes)}
+        done.sort(key=lambda item: order.get(id(item[0].box), 0))
         parts: list[np.ndarray] = []
         ids: list[np.ndarray] = []
         labels: list[np.ndarray] = []
         flags: list[np.ndarray] = []
-        for vehicle, completion in zip(vehicles, completions):
+        for vehicle, measured, completion in done:
             generated = denormalize(completion, vehicle.box).astype(np.float32)
-            measured = vehicle.measured if self.include_input_points else np.zeros((0, 3), np.float32)
             count = len(measured) + len(generated)
             parts += [measured, generated]
             ids.append(np.full(count, vehicle.box.instance_id, np.int32))
             labels.append(np.full(count, LABEL_IDS.get(vehicle.box.label, 0), np.uint8))
             flags.append(np.repeat(np.array([0, 1], np.uint8), [len(measured), len(generated)]))
-        stats.completed = len(vehicles)
-        if not vehicles:
+        stats.completed = len(done)
+        if not done:
             return FrameCompletion(np.zeros((0, 3), np.float32), np.zeros(0, np.int32),
                                    np.zeros(0, np.uint8), np.zeros(0, np.uint8), stats)
         return FrameCompletion(np.concatenate(parts).astype(np.float32, copy=False), np.concatenate(ids),
