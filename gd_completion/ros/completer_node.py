@@ -39,6 +39,8 @@ DIAGNOSTICS_PERIOD_S = 1.0
 COUNTER_KEYS = (
     "clouds_received", "boxes_received", "frames_published", "vehicles_completed", "ignored_labels",
     "skipped_degenerate_box", "skipped_too_few_points", "boxes_wrong_frame", "boxes_without_header",
+    "skipped_implausible_box", "skipped_duplicate_box", "skipped_too_many_boxes", "skipped_too_many_points",
+    "skipped_output_limit", "skipped_time_budget",
     "bad_cloud", "nonfinite_points", "drop_superseded", "frames_without_subscribers", "errors",
 )
 PROCESSING_TIME_TOPIC = "~/debug/processing_time_ms"
@@ -74,7 +76,7 @@ class CompleterNode(Node):
         self.completer = completer or VehicleCompleter.from_checkpoint(
             p.model_path or None, device=p.device, num_threads=p.num_threads or None, labels=p.labels,
             min_points=p.min_points or None, crop_margin=p.crop_margin if p.crop_margin >= 0 else None,
-            include_input_points=p.include_input_points)
+            include_input_points=p.include_input_points, limits=p.limits)
         check_model_sizes(p, self.completer.num_input, self.completer.num_output, p.model_path or "(shipped weights)")
         self.completer.warm_up()
         boxes_cls, self._to_boxes, boxes_type_name = resolve_boxes_type(p.boxes_type)
@@ -179,7 +181,7 @@ class CompleterNode(Node):
             self.get_logger().warning(
                 f"skipping {wrong_frame} box(es) not in the cloud's frame '{frame_id}' (no tf transform here)",
                 throttle_duration_sec=WARN_THROTTLE_S)
-        completion = self.completer.complete_frame(points, boxes)
+        completion = self.completer.complete_frame(points, boxes, cancel=self._stopping)
         stats = completion.stats
         if stats.nonfinite_points:
             self.get_logger().warning(f"dropped {stats.nonfinite_points} non-finite point(s) of a cloud on "

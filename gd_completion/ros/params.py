@@ -8,6 +8,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 
 from gd_completion.box_messages import parse_class_map
 from gd_completion.errors import BoxError, GDCompletionError
+from gd_completion.limits import FrameLimits
 from gd_completion.pipeline import LABEL_IDS
 
 BOXES_TYPES = ("auto", "detection3d", "marker")
@@ -38,6 +39,7 @@ class CompleterParams:
     sync_max_wait: float
     queue_size: int
     include_input_points: bool
+    limits: FrameLimits
 
 
 def _int(lo: int, hi: int) -> dict[str, Any]:
@@ -48,6 +50,7 @@ def _float(lo: float, hi: float) -> dict[str, Any]:
     return {"floating_point_range": [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]}
 
 
+_LIMITS = FrameLimits()
 # name -> (default, description, range keyword arguments of ParameterDescriptor)
 PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "cloud_topic": ("points", "Input sensor_msgs/PointCloud2 topic (sensor-data QoS).", {}),
@@ -80,7 +83,31 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "queue_size": (10, "Clouds and boxes messages buffered per stream while waiting for their partner.",
                    _int(1, 1000)),
     "include_input_points": (True, "Also publish the measured points of each completed vehicle (generated=0).", {}),
+    # per-frame work limits (gd_completion.limits.FrameLimits); every skip is a counter in /diagnostics
+    "max_boxes": (_LIMITS.max_boxes, "Boxes completed per frame at most, nearest first; the rest are skipped "
+                                     "(too_many_boxes).", _int(1, 100000)),
+    "max_box_length": (_LIMITS.max_box_length, "Metres; longer boxes are not vehicles and are skipped "
+                                               "(implausible_box).", _float(1.0, 1000.0)),
+    "max_box_width": (_LIMITS.max_box_width, "Metres; wider boxes are skipped (implausible_box).", _float(0.5, 1000.0)),
+    "max_box_height": (_LIMITS.max_box_height, "Metres; taller boxes are skipped (implausible_box).",
+                       _float(0.5, 1000.0)),
+    "min_box_length": (_LIMITS.min_box_length, "Metres; shorter boxes are skipped (implausible_box).",
+                       _float(0.01, 100.0)),
+    "duplicate_distance": (_LIMITS.duplicate_distance, "Metres; a box whose centre is this close to a nearer kept "
+                                                       "box is a duplicate, skipped (duplicate_box).",
+                           _float(0.001, 10.0)),
+    "max_points_per_vehicle": (_LIMITS.max_points_per_vehicle, "A box holding more points is skipped "
+                                                               "(too_many_points).", _int(1, 100000000)),
+    "max_output_points": (_LIMITS.max_output_points, "Points published per frame at most, whole vehicles nearest "
+                                                     "first; the rest are skipped (output_limit).",
+                          _int(1, 1000000000)),
+    "time_budget": (_LIMITS.time_budget_s, "Seconds of completion per frame; vehicles not started by then are "
+                                           "skipped (time_budget), nearest first.", _float(0.01, 3600.0)),
 }
+LIMIT_PARAMETERS = {"max_boxes": "max_boxes", "max_box_length": "max_box_length", "max_box_width": "max_box_width",
+                    "max_box_height": "max_box_height", "min_box_length": "min_box_length",
+                    "duplicate_distance": "duplicate_distance", "max_points_per_vehicle": "max_points_per_vehicle",
+                    "max_output_points": "max_output_points", "time_budget": "time_budget_s"}
 
 
 def declare_parameters(node: Any) -> None:
@@ -117,7 +144,12 @@ def validate(values: dict[str, Any]) -> CompleterParams:
     for name in ("cloud_topic", "boxes_topic", "output_topic"):
         if not str(values[name]).strip():
             raise ParameterError(f"parameter {name} must not be empty")
-    return CompleterParams(**{**values, "device": device, "labels": labels, "class_map": class_map})
+    try:
+        limits = FrameLimits(**{field: values[name] for name, field in LIMIT_PARAMETERS.items()})
+    except ValueError as exc:
+        raise ParameterError(f"frame limits: {exc}") from exc
+    plain = {k: v for k, v in values.items() if k not in LIMIT_PARAMETERS}
+    return CompleterParams(**{**plain, "device": device, "labels": labels, "class_map": class_map, "limits": limits})
 
 
 def check_model_sizes(params: CompleterParams, num_input: int, num_output: int, source: str) -> None:
