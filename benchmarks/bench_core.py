@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from gd_completion.geometry import Box3D, crop_boxes
-from gd_completion.pointcloud2 import FLOAT32, FLOAT64, UINT16, FieldSpec, read_xyz
+from gd_completion.pointcloud2 import read_xyz, write_points, xyz_array_to_structured
 
 N_POINTS = 120_000
 N_BOXES = 30
@@ -53,19 +53,11 @@ def hesai_message(points: np.ndarray) -> SimpleNamespace:
     """A PointCloud2-like message in the Hesai driver layout (x y z intensity f32, ring u16, timestamp f64,
     packed, point_step 26), with `data` an array.array('B') as in rclpy messages."""
     n = len(points)
-    dtype = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "timestamp"],
-                      "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f8"],
-                      "offsets": [0, 4, 8, 12, 16, 18], "itemsize": 26})
-    cloud = np.zeros(n, dtype=dtype)
-    cloud["x"], cloud["y"], cloud["z"] = points[:, 0], points[:, 1], points[:, 2]
-    cloud["intensity"] = np.linspace(0, 255, n, dtype=np.float32)
-    cloud["ring"] = np.arange(n) % 64
-    cloud["timestamp"] = 1.7e9 + np.arange(n) * 1e-6
-    fields = [FieldSpec("x", 0, FLOAT32), FieldSpec("y", 4, FLOAT32), FieldSpec("z", 8, FLOAT32),
-              FieldSpec("intensity", 12, FLOAT32), FieldSpec("ring", 16, UINT16),
-              FieldSpec("timestamp", 18, FLOAT64)]
-    return SimpleNamespace(height=1, width=n, fields=fields, is_bigendian=False, point_step=26, row_step=26 * n,
-                           is_dense=True, data=array.array("B", cloud.tobytes()))
+    layout = write_points(xyz_array_to_structured(
+        points, intensity=np.linspace(0, 255, n, dtype=np.float32), ring=(np.arange(n) % 64).astype(np.uint16),
+        timestamp=1.7e9 + np.arange(n) * 1e-6))
+    return SimpleNamespace(height=1, width=n, fields=layout.fields, is_bigendian=False, point_step=layout.point_step,
+                           row_step=layout.row_step, is_dense=True, data=array.array("B", layout.data.tobytes()))
 
 
 def bench_decode(repeats: int = 50) -> float:

@@ -6,7 +6,8 @@ import os
 import time
 from pathlib import Path
 
-from gd_completion import bagio
+from gd_completion.bags.reader import iter_raw, open_bag
+from gd_completion.bags.typestore import deserialize
 from gd_completion.hesai import ScanAssembler, decode_packets, load_calibration
 from gd_completion.hesai.packets import packets_to_array
 
@@ -20,9 +21,9 @@ BAGS = {
 def load_packets(bag: Path) -> list[list[bytes]]:
     """Packets of each PandarScan message of a bag."""
     out = []
-    with bagio.open_bag(bag) as reader:
-        for conn, _, raw in bagio.iter_raw(reader):
-            msg = bagio.deserialize(raw, conn.msgtype)
+    with open_bag(bag) as reader:
+        for conn, _, raw in iter_raw(reader):
+            msg = deserialize(raw, conn.msgtype)
             out.append([bytes(p.data[: int(p.size)]) for p in msg.packets])
     return out
 

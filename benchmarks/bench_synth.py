@@ -31,8 +31,9 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)
+    from gd_completion.synth.beams import PATTERN_NAMES, BeamPattern
     from gd_completion.synth.dataset import build_dataset, make_sample, sample_rng
-    from gd_completion.synth.lidar import PATTERN_NAMES, BeamPattern, simulate_scan
+    from gd_completion.synth.lidar import simulate_scan
     from gd_completion.synth.scene import synthetic_drive
     from gd_completion.synth.vehicles import VEHICLE_KINDS, generate_vehicle
 

@@ -8,12 +8,12 @@ from typing import Any
 
 from gd_completion.errors import BoxError
 from gd_completion.geometry import Box3D
+from gd_completion.rotations import yaw_from_quaternion
 from gd_completion.stamp_sync import stamp_to_ns
 
 # visualization_msgs/msg/Marker constants (kept here so the pure logic needs no message import).
 MARKER_CUBE = 1
 MARKER_ADD = 0  # MODIFY has the same value
-IGNORE_LABEL = "ignore"
 
 
 @dataclass(frozen=True)
@@ -46,11 +46,6 @@ def map_label(raw: str, class_map: Mapping[str, str]) -> str:
     """Detector class name/id -> our label: the class_map entry, else the raw name in lower case."""
     raw = str(raw).strip()
     return class_map.get(raw, raw.lower())
-
-
-def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
-    """Heading about +z of a quaternion (need not be unit; all-zero reads as identity, NaN stays NaN)."""
-    return math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
 
 
 def _box(pose: Any, size: Any, label: str, instance_id: int) -> Box3D:

@@ -7,30 +7,34 @@ import sys
 
 from gd_completion.errors import GDCompletionError
 
-# Each module exposes register(subparsers) and sets a `func` default on its parser.
-SUBCOMMAND_MODULES = (
-    "gd_completion.tools.demo",
-    "gd_completion.tools.train",
-    "gd_completion.tools.convert",
-    "gd_completion.tools.complete",
-    "gd_completion.tools.play",
-    "gd_completion.tools.render",
-    "gd_completion.tools.evaluate",
-)
+# Subcommand -> module exposing register(subparsers), which sets a `func` default on its parser. A module
+# imports only what its parser needs at the top (no torch): `gd-completion VERB ...` imports VERB's module alone.
+SUBCOMMANDS = {
+    "demo": "gd_completion.tools.demo",
+    "train": "gd_completion.tools.train",
+    "convert": "gd_completion.tools.convert",
+    "complete": "gd_completion.tools.complete",
+    "play": "gd_completion.tools.play",
+    "render": "gd_completion.tools.render",
+    "evaluate": "gd_completion.tools.evaluate",
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Parser with every subcommand registered."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """Parser with every subcommand registered, or only `command` when it names one."""
     parser = argparse.ArgumentParser(prog="gd-completion", description=__doc__)
     subparsers = parser.add_subparsers(dest="command", required=True)
-    for name in SUBCOMMAND_MODULES:
-        importlib.import_module(name).register(subparsers)
+    names = [command] if command in SUBCOMMANDS else list(SUBCOMMANDS)
+    for name in names:
+        importlib.import_module(SUBCOMMANDS[name]).register(subparsers)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand; bad input gives a one-line error and exit code 2."""
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    command = next((arg for arg in argv if not arg.startswith("-")), None)  # gd-completion has no option values
+    args = build_parser(command).parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except GDCompletionError as error:

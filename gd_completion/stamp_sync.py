@@ -11,6 +11,11 @@ C = TypeVar("C")
 B = TypeVar("B")
 T = TypeVar("T")
 
+# Pairing defaults, shared by the node's parameters and the offline tools (`complete`, `render`).
+SYNC_TOLERANCE_S = 0.05  # largest stamp difference between a cloud and its boxes
+SYNC_MAX_WAIT_S = 1.0  # how long a cloud (or boxes message) waits for its partner
+SYNC_QUEUE_SIZE = 10  # messages buffered per stream while waiting
+
 
 def stamp_to_ns(stamp) -> int:
     """`builtin_interfaces/Time` (anything with `.sec`, `.nanosec`) -> integer nanoseconds."""
@@ -54,10 +59,12 @@ class StampSync(Generic[C, B]):
     arrives, buffered messages of the other stream older than T - tolerance can never be paired and
     are dropped (counted). Each buffer holds at most `queue_size` messages (the oldest is dropped and
     counted on overflow), and `expire(now)` drops messages that waited longer than `max_wait_ns`
-    (for a stream that stopped). Not thread-safe: call from one thread or under a lock.
+    (for a stream that stopped). `on_cloud_dropped` is called with every cloud given up on. Not
+    thread-safe: call from one thread or under a lock.
     """
 
-    def __init__(self, tolerance_ns: int, queue_size: int, max_wait_ns: int | None = None) -> None:
+    def __init__(self, tolerance_ns: int, queue_size: int, max_wait_ns: int | None = None,
+                 on_cloud_dropped: Callable[[C], None] | None = None) -> None:
         if tolerance_ns < 0:
             raise ValueError(f"tolerance_ns must be >= 0, got {tolerance_ns}")
         if queue_size < 1:
@@ -65,6 +72,7 @@ class StampSync(Generic[C, B]):
         self.tolerance_ns = int(tolerance_ns)
         self.queue_size = int(queue_size)
         self.max_wait_ns = max_wait_ns
+        self.on_cloud_dropped = on_cloud_dropped
         self.counters = SyncCounters()
         self._clouds: deque[_Entry[C]] = deque()
         self._boxes: deque[_Entry[B]] = deque()
@@ -77,21 +85,23 @@ class StampSync(Generic[C, B]):
     def add_cloud(self, stamp_ns: int, cloud: C, now_ns: int = 0) -> Pair[C, B] | None:
         """Offer a cloud; returns the pair when boxes with a matching stamp were waiting."""
         match = self._take_nearest(self._boxes, stamp_ns)
-        self.counters.boxes_no_cloud += self._evict(self._boxes, lambda e: e.stamp_ns >= stamp_ns - self.tolerance_ns)
+        self.counters.boxes_no_cloud += len(self._evict(self._boxes,
+                                                        lambda e: e.stamp_ns >= stamp_ns - self.tolerance_ns))
         if match is not None:
             self.counters.paired += 1
             return Pair(stamp_ns, cloud, match.item)
-        self.counters.cloud_overflow += self._push(self._clouds, _Entry(stamp_ns, cloud, now_ns))
+        self.counters.cloud_overflow += self._drop_clouds(self._push(self._clouds, _Entry(stamp_ns, cloud, now_ns)))
         return None
 
     def add_boxes(self, stamp_ns: int, boxes: B, now_ns: int = 0) -> Pair[C, B] | None:
         """Offer a boxes message; returns the pair when a cloud with a matching stamp was waiting."""
         match = self._take_nearest(self._clouds, stamp_ns)
-        self.counters.cloud_no_boxes += self._evict(self._clouds, lambda e: e.stamp_ns >= stamp_ns - self.tolerance_ns)
+        self.counters.cloud_no_boxes += self._drop_clouds(self._evict(
+            self._clouds, lambda e: e.stamp_ns >= stamp_ns - self.tolerance_ns))
         if match is not None:
             self.counters.paired += 1
             return Pair(match.stamp_ns, match.item, boxes)
-        self.counters.boxes_overflow += self._push(self._boxes, _Entry(stamp_ns, boxes, now_ns))
+        self.counters.boxes_overflow += len(self._push(self._boxes, _Entry(stamp_ns, boxes, now_ns)))
         return None
 
     def expire(self, now_ns: int) -> int:
@@ -99,8 +109,15 @@ class StampSync(Generic[C, B]):
         if self.max_wait_ns is None:
             return 0
         limit = now_ns - self.max_wait_ns
-        clouds = self._evict(self._clouds, lambda e: e.received_ns >= limit)
-        boxes = self._evict(self._boxes, lambda e: e.received_ns >= limit)
+        return self._give_up(lambda e: e.received_ns >= limit)
+
+    def close(self) -> int:
+        """The streams ended: drop everything still waiting (counted as never paired); returns how many."""
+        return self._give_up(lambda e: False)
+
+    def _give_up(self, keep: Callable[[_Entry], bool]) -> int:
+        clouds = self._drop_clouds(self._evict(self._clouds, keep))
+        boxes = len(self._evict(self._boxes, keep))
         self.counters.cloud_no_boxes += clouds
         self.counters.boxes_no_cloud += boxes
         return clouds + boxes
@@ -116,21 +133,62 @@ class StampSync(Generic[C, B]):
         return best
 
     @staticmethod
-    def _evict(buffer: deque, keep: Callable[[_Entry], bool]) -> int:
-        kept = [e for e in buffer if keep(e)]
-        dropped = len(buffer) - len(kept)
+    def _evict(buffer: deque, keep: Callable[[_Entry], bool]) -> list[_Entry]:
+        kept, dropped = [], []
+        for e in buffer:
+            (kept if keep(e) else dropped).append(e)
         if dropped:
             buffer.clear()
             buffer.extend(kept)
         return dropped
 
-    def _push(self, buffer: deque, entry: _Entry) -> int:
+    def _push(self, buffer: deque, entry: _Entry) -> list[_Entry]:
         buffer.append(entry)
-        dropped = 0
+        dropped = []
         while len(buffer) > self.queue_size:
-            buffer.popleft()
-            dropped += 1
+            dropped.append(buffer.popleft())
         return dropped
+
+    def _drop_clouds(self, entries: list[_Entry[C]]) -> int:
+        if self.on_cloud_dropped is not None:
+            for entry in entries:
+                self.on_cloud_dropped(entry.item)
+        return len(entries)
+
+
+class RecordingSync(Generic[C, B]):
+    """`StampSync` over a recording: the bag timestamp of a message stands in for its arrival time, and every
+    cloud comes out once, with the boxes the node pairs it with live or with None where the node gives up on it.
+
+    `add_cloud`, `add_boxes` and `close` return the clouds they decided, as (cloud, boxes or None).
+    """
+
+    def __init__(self, tolerance_ns: int, queue_size: int = SYNC_QUEUE_SIZE,
+                 max_wait_ns: int = int(SYNC_MAX_WAIT_S * 1e9)) -> None:
+        self._decided: list[tuple[C, B | None]] = []
+        self.sync: StampSync[C, B] = StampSync(tolerance_ns, queue_size, max_wait_ns,
+                                               on_cloud_dropped=lambda cloud: self._decided.append((cloud, None)))
+
+    def add_cloud(self, stamp_ns: int, cloud: C, bag_ns: int) -> list[tuple[C, B | None]]:
+        """Offer the cloud recorded at `bag_ns`."""
+        self.sync.expire(bag_ns)
+        return self._decide(self.sync.add_cloud(stamp_ns, cloud, bag_ns))
+
+    def add_boxes(self, stamp_ns: int, boxes: B, bag_ns: int) -> list[tuple[C, B | None]]:
+        """Offer the boxes message recorded at `bag_ns`."""
+        self.sync.expire(bag_ns)
+        return self._decide(self.sync.add_boxes(stamp_ns, boxes, bag_ns))
+
+    def close(self) -> list[tuple[C, B | None]]:
+        """The recording ended: the clouds still waiting get no boxes."""
+        self.sync.close()
+        return self._decide(None)
+
+    def _decide(self, pair: Pair[C, B] | None) -> list[tuple[C, B | None]]:
+        if pair is not None:
+            self._decided.append((pair.cloud, pair.boxes))
+        decided, self._decided = self._decided, []
+        return decided
 
 
 class LatestSlot(Generic[T]):

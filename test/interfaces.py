@@ -9,6 +9,8 @@ import threading
 import time
 from pathlib import Path
 
+from ros_domain import allocate_domain_id
+
 REPO = Path(__file__).resolve().parents[1]
 BUILD_SCRIPT = REPO / "scripts" / "build_interfaces.sh"
 VISION_MSGS_DIR = REPO / "gd_completion" / "msg" / "vision_msgs"
@@ -115,9 +117,12 @@ def vision_msgs_definitions() -> dict[str, str]:
     return {f"vision_msgs/msg/{p.stem}": p.read_text() for p in sorted(VISION_MSGS_DIR.glob("*.msg"))}
 
 
-def ros_test_domain_id() -> int:
-    """A ROS_DOMAIN_ID for this test process: `$GD_TEST_DOMAIN_ID`, else 120 + pid % 100 (within Fast DDS's 0..232)."""
-    return int(os.environ.get("GD_TEST_DOMAIN_ID", 120 + os.getpid() % 100))
+def ros_test_domain_id(name: str = "default") -> int:
+    """A ROS_DOMAIN_ID that no other test process on this machine holds (`ros_domain.allocate_domain_id`: one per
+    `name`, kept for the life of the process); `$GD_TEST_DOMAIN_ID` overrides the default one."""
+    if name == "default" and "GD_TEST_DOMAIN_ID" in os.environ:
+        return int(os.environ["GD_TEST_DOMAIN_ID"])
+    return allocate_domain_id(name)
 
 
 def vision_msgs_type_hash(name: str = "Detection3DArray") -> str:

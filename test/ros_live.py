@@ -14,6 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from kitti_frames import KittiFrame, cloud_msg, marker_array
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from ros_domain import allocate_domain_id
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64
 from visualization_msgs.msg import MarkerArray
@@ -21,7 +22,7 @@ from visualization_msgs.msg import MarkerArray
 from gd_completion.geometry import Box3D
 
 REPO = Path(__file__).resolve().parents[1]
-DOMAIN_ID = 220 + os.getpid() % 12  # 220..231: apart from the 120..219 other ROS tests use
+DOMAIN_ID = allocate_domain_id("node_live")  # this process holds it: no concurrent test run shares it
 # Large PointCloud2 over Fast DDS's default transports loses fragments between processes here; the shipped
 # profile (big shared-memory segment, big UDP buffers) is given to both sides.
 FASTDDS_PROFILE = REPO / "config" / "fastdds_large_messages.xml"

@@ -1,6 +1,8 @@
 """`complete`, `play` and `render` on a converted KITTI bag; bad bags fail cleanly with no output."""
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import subprocess
 import sys
@@ -11,12 +13,19 @@ import numpy as np
 import pytest
 from interfaces import ros_test_domain_id
 
-from gd_completion import bagio
+from gd_completion import __version__
+from gd_completion.bags.messages import header, marker_array_msg, pointcloud2_msg, stamp
+from gd_completion.bags.provenance import read_provenance
+from gd_completion.bags.reader import iter_raw, open_bag
+from gd_completion.bags.typestore import MARKER_ARRAY, POINTCLOUD2, deserialize, message_class, serialize
+from gd_completion.bags.writer import add_connection, atomic_bag_writer, copy_connection
 from gd_completion.cli import main
 from gd_completion.errors import GDCompletionError
 from gd_completion.geometry import Box3D
 from gd_completion.pointcloud2 import read_points, write_points
+from gd_completion.stamp_sync import SYNC_TOLERANCE_S, stamp_to_ns
 from gd_completion.tools.complete import complete_bag
+from gd_completion.tools.render import read_frame
 
 pytestmark = pytest.mark.integration  # processes, ROS nodes, builds or bags: the slow part of the suite
 
@@ -55,11 +64,11 @@ def completed_bag(kitti_bag: Path, model_path: str) -> Path:
 
 
 def _raw(path: Path) -> tuple[dict[str, tuple], dict[str, list[tuple[int, bytes]]]]:
-    with bagio.open_bag(path) as reader:
+    with open_bag(path) as reader:
         conns = {c.topic: (c.msgtype, c.msgdef.data, c.digest, c.ext.serialization_format,
                            list(c.ext.offered_qos_profiles)) for c in reader.connections}
         messages: dict[str, list] = {}
-        for conn, stamp, raw in bagio.iter_raw(reader, reader.connections):
+        for conn, stamp, raw in iter_raw(reader, reader.connections):
             messages.setdefault(conn.topic, []).append((stamp, bytes(raw)))
     return conns, messages
 
@@ -75,8 +84,8 @@ def test_complete_keeps_every_input_message(kitti_bag: Path, completed_bag: Path
     assert [s for s, _ in completed] == [s for s, _ in in_msgs["/kitti/points"]]
     n_generated = 0
     for (_stamp, raw), (_, cloud_raw) in zip(completed, in_msgs["/kitti/points"]):
-        msg = bagio.deserialize(raw, bagio.POINTCLOUD2)
-        cloud = bagio.deserialize(cloud_raw, bagio.POINTCLOUD2)
+        msg = deserialize(raw, POINTCLOUD2)
+        cloud = deserialize(cloud_raw, POINTCLOUD2)
         assert msg.header.frame_id == cloud.header.frame_id and msg.header.stamp == cloud.header.stamp
         pts = read_points(msg)
         assert pts.dtype.names == ("x", "y", "z", "instance_id", "label", "generated")
@@ -114,8 +123,8 @@ def test_failure_mid_write_leaves_no_output(kitti_bag: Path, tmp_path: Path) -> 
 
 
 def _all_raw(path: Path) -> list[tuple[str, int, bytes]]:
-    with bagio.open_bag(path) as reader:
-        return [(conn.topic, stamp, bytes(raw)) for conn, stamp, raw in bagio.iter_raw(reader, reader.connections)]
+    with open_bag(path) as reader:
+        return [(conn.topic, stamp, bytes(raw)) for conn, stamp, raw in iter_raw(reader, reader.connections)]
 
 
 def test_complete_workers_match_one_process(kitti_bag: Path, completed_bag: Path, model_path: str,
@@ -126,6 +135,7 @@ def test_complete_workers_match_one_process(kitti_bag: Path, completed_bag: Path
     assert summary.copied_messages == len(_all_raw(kitti_bag))
     assert _raw(out)[0] == _raw(completed_bag)[0]  # connections: types, definitions, QoS
     assert _all_raw(out) == _all_raw(completed_bag)  # every message: topic, order, bag timestamp, bytes
+    assert read_provenance(out) == read_provenance(completed_bag)  # the worker count changes nothing
 
 
 @pytest.mark.parametrize("case", ["missing", "corrupt"])
@@ -154,18 +164,17 @@ def test_complete_workers_arguments(kitti_bag: Path, tmp_path: Path, capsys: pyt
 
 def _write_bag(path: Path, with_boxes: bool, boxes_frame: str = "lidar") -> None:
     cloud = np.zeros(10, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
-    with bagio.atomic_bag_writer(path) as writer:
-        pts = bagio.add_connection(writer, "/points", bagio.POINTCLOUD2)
-        other = bagio.add_connection(writer, "/other", "pandar_msgs/msg/PandarScan")
-        boxes = bagio.add_connection(writer, "/boxes", bagio.MARKER_ARRAY) if with_boxes else None
+    with atomic_bag_writer(path) as writer:
+        pts = add_connection(writer, "/points", POINTCLOUD2)
+        other = add_connection(writer, "/other", "pandar_msgs/msg/PandarScan")
+        boxes = add_connection(writer, "/boxes", MARKER_ARRAY) if with_boxes else None
         for k in range(2):
-            writer.write(pts, k, bagio.serialize(bagio.pointcloud2_msg(write_points(cloud), "lidar", k),
-                                                 bagio.POINTCLOUD2))
-            writer.write(other, k, bagio.serialize(bagio.typestore().types["pandar_msgs/msg/PandarScan"](
-                header=bagio.header("lidar", k), packets=[]), "pandar_msgs/msg/PandarScan"))
+            writer.write(pts, k, serialize(pointcloud2_msg(write_points(cloud), "lidar", k), POINTCLOUD2))
+            writer.write(other, k, serialize(message_class("pandar_msgs/msg/PandarScan")(
+                header=header("lidar", k), packets=[]), "pandar_msgs/msg/PandarScan"))
             if boxes is not None:
-                writer.write(boxes, k, bagio.serialize(bagio.marker_array_msg(
-                    [Box3D((1, 2, 0), (4, 2, 1.5), 0.1, "car", 3)], boxes_frame, k), bagio.MARKER_ARRAY))
+                writer.write(boxes, k, serialize(marker_array_msg(
+                    [Box3D((1, 2, 0), (4, 2, 1.5), 0.1, "car", 3)], boxes_frame, k), MARKER_ARRAY))
 
 
 @pytest.mark.parametrize("case", ["truncated", "not_a_bag", "missing", "no_boxes", "unknown_boxes_type",
@@ -218,8 +227,99 @@ def test_boxes_in_another_frame_are_skipped_and_counted(model_path: str, tmp_pat
     src = tmp_path / "in"
     _write_bag(src, with_boxes=True, boxes_frame="map")   # the clouds are in "lidar"; no tf offline
     summary = complete_bag(src, tmp_path / "out", model=model_path, progress=False)
-    assert summary.frames == 2 and dict(summary.skipped) == {"boxes_in_other_frame": 2}
-    assert "boxes_in_other_frame 2" in summary.text()
+    assert summary.frames == 2 and summary.boxes_wrong_frame == 2 and dict(summary.skipped) == {}
+    assert summary.counters()["boxes_wrong_frame"] == 2 and "boxes_wrong_frame 2" in summary.text()
+
+
+DETECTOR_DELAY_NS = 3_000_000  # the detector stamps its boxes 3 ms after the cloud (and they are recorded later)
+
+
+@pytest.fixture(scope="module")
+def delayed_boxes_bag(kitti_bag: Path) -> Path:
+    """The KITTI bag with every boxes message (header, per-detection and per-marker headers, bag time) 3 ms later."""
+    out = kitti_bag.parent / "kitti_delayed_boxes"
+    with open_bag(kitti_bag) as reader, atomic_bag_writer(out) as writer:
+        conns = {conn.id: copy_connection(writer, conn, kitti_bag) for conn in reader.connections}
+        for conn, bag_ns, raw in iter_raw(reader, reader.connections):
+            if conn.topic in ("/kitti/detections", "/kitti/markers"):
+                msg = deserialize(raw, conn.msgtype)
+                headers = [msg.header, *(d.header for d in msg.detections)] if conn.topic == "/kitti/detections" \
+                    else [m.header for m in msg.markers]
+                for hdr in headers:
+                    hdr.stamp = stamp(stamp_to_ns(hdr.stamp) + DETECTOR_DELAY_NS)
+                raw, bag_ns = serialize(msg, conn.msgtype), bag_ns + DETECTOR_DELAY_NS
+            writer.write(conns[conn.id], bag_ns, raw)
+    return out
+
+
+def test_complete_pairs_boxes_within_the_sync_tolerance(delayed_boxes_bag: Path, completed_bag: Path,
+                                                        model_path: str, tmp_path: Path) -> None:
+    """Boxes stamped 3 ms after their cloud pair as in the node (sync_tolerance 0.05 s): the same completions,
+    with the cloud's stamp, header and bag time; with a 1 ms tolerance no frame pairs, as live."""
+    delayed = _raw(delayed_boxes_bag)[1]
+    assert [s for s, _ in delayed["/kitti/detections"]] == [s + DETECTOR_DELAY_NS for s, _ in
+                                                          delayed["/kitti/points"]]
+    out = tmp_path / "paired"
+    summary = complete_bag(delayed_boxes_bag, out, model=model_path, num_threads=1, progress=False)
+    reference = _raw(completed_bag)[1]["/kitti/completed"]
+    assert summary.frames == 6 and summary.sync.paired == 6 and summary.frames_without_boxes == 0
+    vehicles = sum(len(np.unique(read_points(deserialize(raw, POINTCLOUD2))["instance_id"])) for _, raw in reference)
+    assert summary.vehicles_completed == vehicles > 0
+    completed = _raw(out)[1]["/kitti/completed"]
+    assert completed == reference  # bag timestamps (the clouds') and bytes, headers included
+    for (bag_ns, raw), (cloud_ns, cloud_raw) in zip(completed, delayed["/kitti/points"]):
+        msg, cloud = deserialize(raw, POINTCLOUD2), deserialize(cloud_raw, POINTCLOUD2)
+        assert bag_ns == cloud_ns and msg.header.stamp == cloud.header.stamp
+        assert msg.header.frame_id == cloud.header.frame_id == "velo_link"
+
+    strict = tmp_path / "strict"
+    assert main(["complete", str(delayed_boxes_bag), str(strict), "--model", model_path, "--threads", "1",
+                 "--quiet", "--sync-tolerance", "0.001"]) == 0
+    completed = _raw(strict)[1]["/kitti/completed"]
+    assert [s for s, _ in completed] == [s for s, _ in delayed["/kitti/points"]]
+    assert all(deserialize(raw, POINTCLOUD2).width == 0 for _, raw in completed)
+    assert json.loads(read_provenance(strict)["gd_completion.parameters"])["sync_tolerance"] == 0.001
+
+
+def test_complete_counts_pairing_as_the_node(delayed_boxes_bag: Path, model_path: str, tmp_path: Path) -> None:
+    summary = complete_bag(delayed_boxes_bag, tmp_path / "out", model=model_path, num_threads=1, progress=False,
+                           sync_tolerance=0.001)
+    counters = summary.counters()
+    assert summary.frames == 6 and summary.frames_without_boxes == 6 and summary.vehicles_completed == 0
+    assert (counters["frames_paired"], counters["drop_cloud_no_boxes"], counters["drop_boxes_no_cloud"]) == (0, 6, 6)
+    assert "drop_cloud_no_boxes 6" in summary.text() and "6 frames without boxes" in summary.text()
+
+
+def test_render_pairs_as_complete(delayed_boxes_bag: Path, kitti_bag: Path) -> None:
+    topic, cloud, boxes, completed = read_frame(delayed_boxes_bag, 1)
+    assert topic == "/kitti/points" and completed is None
+    assert stamp_to_ns(cloud.header.stamp) == 100_000_000
+    assert boxes and boxes == read_frame(kitti_bag, 1)[2]
+    assert read_frame(delayed_boxes_bag, 1, sync_tolerance=0.001)[2] == []
+
+
+def test_complete_records_provenance(completed_bag: Path, model_path: str, tmp_path: Path) -> None:
+    """Version, the model's SHA-256 and the parameters in metadata.yaml's custom_data (what `ros2 bag info` reads)."""
+    info = read_provenance(completed_bag)
+    assert info["gd_completion.version"] == __version__
+    assert info["gd_completion.command"] == "complete"
+    assert info["gd_completion.model"] == model_path
+    assert info["gd_completion.model_sha256"] == hashlib.sha256(Path(model_path).read_bytes()).hexdigest()
+    params = json.loads(info["gd_completion.parameters"])
+    assert (params["cloud_topic"], params["boxes_topic"], params["output_topic"]) == (
+        "/kitti/points", "/kitti/detections", "/kitti/completed")
+    assert params["sync_tolerance"] == SYNC_TOLERANCE_S == 0.05
+    completer = params["completer"]
+    assert completer["labels"] == ["car", "truck", "van"] and completer["include_input_points"] is True
+    assert (completer["num_input_points"], completer["num_output_points"], completer["device"]) == (1024, 2048, "cpu")
+    assert completer["preprocessing"]["min_points"] == 20 and completer["preprocessing"]["crop_margin"] == 0.1
+    # the sqlite3 storage keeps the same metadata
+    out = tmp_path / "db"
+    complete_bag(completed_bag, out, model=model_path, storage="sqlite3", progress=False, output_topic="/again",
+                 min_points=50)
+    again = read_provenance(out)
+    assert again["gd_completion.model_sha256"] == info["gd_completion.model_sha256"]
+    assert json.loads(again["gd_completion.parameters"])["completer"]["preprocessing"]["min_points"] == 50
 
 
 def test_render_completed_bag(completed_bag: Path, tmp_path: Path) -> None:
@@ -304,10 +404,8 @@ def test_play_detections_with_vision_msgs(kitti_bag: Path, monkeypatch: pytest.M
 
 
 def test_foxglove_layout_names_the_written_topics() -> None:
-    import json
-
+    from gd_completion.bags.topics import default_output_topic
     from gd_completion.datasets import pandaset
-    from gd_completion.tools.complete import default_output_topic
     from gd_completion.tools.convert import KITTI_TOPICS
 
     layout = json.loads((REPO / "foxglove" / "gd_completion_layout.json").read_text())

@@ -8,14 +8,9 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose, Quaternion
 from visualization_msgs.msg import Marker, MarkerArray
 
-from gd_completion.box_messages import (
-    detections_to_boxes,
-    map_label,
-    markers_to_boxes,
-    parse_class_map,
-    yaw_from_quaternion,
-)
+from gd_completion.box_messages import detections_to_boxes, map_label, markers_to_boxes, parse_class_map
 from gd_completion.errors import BoxError
+from gd_completion.rotations import yaw_from_quaternion
 
 CLASS_MAP = parse_class_map(["1:car", "2:van", "3:truck", "Car:car", "Pedestrian:ignore"])
 

@@ -111,7 +111,7 @@ def test_installed_completer_runs_and_stops_cleanly(colcon_install: Path, monkey
     import rclpy
 
     prefix = colcon_install / "gd_completion"
-    domain = ros_test_domain_id() + (1 if sig == signal.SIGTERM else 0)
+    domain = ros_test_domain_id(f"colcon_{sig.name}")  # the two runs must not see each other's node
     site = prefix / "lib" / PY / "site-packages"
     env = _clean_env(
         PYTHONPATH=os.pathsep.join(p for p in (str(site), os.environ.get("PYTHONPATH", "")) if p),

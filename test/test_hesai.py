@@ -7,12 +7,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gd_completion import bagio
+from gd_completion.bags.messages import header, stamp
+from gd_completion.bags.reader import iter_raw, open_bag
+from gd_completion.bags.typestore import deserialize, message_class, serialize
+from gd_completion.bags.writer import add_connection, atomic_bag_writer
 from gd_completion.errors import DataFormatError, GDCompletionError
 from gd_completion.hesai import ScanAssembler, decode_packets, decode_scan, load_calibration, read_pcd
 from gd_completion.hesai.decoder import ReturnType
-from gd_completion.hesai.packets import packets_to_array, parse_packets
+from gd_completion.hesai.packets import packet_time_s, packets_to_array, parse_packets
 from gd_completion.pointcloud2 import read_points
+from gd_completion.stamp_sync import stamp_to_ns
 from gd_completion.tools.convert_hesai import PANDAR_SCAN, add_hesai_parser
 
 CASES = {
@@ -36,9 +40,9 @@ def _messages(bag: Path) -> list[tuple[int, list[bytes]]]:
     key = str(bag)
     if key not in _CACHE:
         out = []
-        with bagio.open_bag(bag) as reader:
-            for _conn, ns, raw in bagio.iter_raw(reader):
-                msg = bagio.deserialize(raw, PANDAR_SCAN)
+        with open_bag(bag) as reader:
+            for _conn, ns, raw in iter_raw(reader):
+                msg = deserialize(raw, PANDAR_SCAN)
                 out.append((ns, [bytes(p.data[: int(p.size)]) for p in msg.packets]))
         _CACHE[key] = out
     return _CACHE[key]
@@ -239,9 +243,9 @@ def _convert(argv: list[str]) -> int:
 
 def _read_clouds(bag: Path) -> list[tuple[int, np.ndarray, object]]:
     out = []
-    with bagio.open_bag(bag) as reader:
-        for conn, ns, raw in bagio.iter_raw(reader):
-            msg = bagio.deserialize(raw, conn.msgtype)
+    with open_bag(bag) as reader:
+        for conn, ns, raw in iter_raw(reader):
+            msg = deserialize(raw, conn.msgtype)
             out.append((ns, read_points(msg).copy(), msg))
     return out
 
@@ -268,23 +272,59 @@ def test_convert_roundtrip(case, tmp_path, storage):
     assert ("mcap" if storage == "mcap" else "sqlite3") in metadata
 
 
+def _receive_and_sensor_times(bag: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Per packet of the bag: its receive stamp (s, host clock, from the message) and its lidar-clock time (s)."""
+    receive, sensor = [], []
+    with open_bag(bag) as reader:
+        for _conn, _ns, raw in iter_raw(reader):
+            msg = deserialize(raw, PANDAR_SCAN)
+            packets = [bytes(p.data[: int(p.size)]) for p in msg.packets]
+            fmt, array = packets_to_array(packets)
+            sensor.append(packet_time_s(fmt, parse_packets(fmt, array)))
+            receive.append(np.array([stamp_to_ns(p.stamp) for p in msg.packets], np.float64) * 1e-9)
+    return np.concatenate(receive), np.concatenate(sensor)
+
+
+def test_convert_default_time_is_host(case, tmp_path):
+    """Without --time the clouds are on the host clock (the packets' receive stamps), which lines up with other
+    topics; these drivers' lidar clocks run years behind it. Points are the same as with --time sensor."""
+    parser = argparse.ArgumentParser()
+    add_hesai_parser(parser.add_subparsers(dest="dataset"))
+    assert parser.parse_args(["hesai", "in", "out", "--calibration", "c.csv"]).time == "host"
+    common = [str(case["bag"]), "--calibration", str(case["csv"]), "--quiet"]
+    assert _convert([common[0], str(tmp_path / "host"), *common[1:]]) == 0
+    assert _convert([common[0], str(tmp_path / "sensor"), *common[1:], "--time", "sensor"]) == 0
+    host, sensor = _read_clouds(tmp_path / "host"), _read_clouds(tmp_path / "sensor")
+    receive, lidar_clock = _receive_and_sensor_times(case["bag"])
+    clock_offset = float(np.median(receive - lidar_clock))
+    assert clock_offset > 3.0e7  # about 5.3 years (40P) and 2.5 years (64) apart in these recordings
+    assert len(host) == len(sensor) >= 1
+    for (ns, points, msg), (_, reference, _) in zip(host, sensor):
+        for name in ("x", "y", "z", "intensity", "ring"):
+            np.testing.assert_array_equal(points[name], reference[name])
+        shift = points["timestamp"] - reference["timestamp"]
+        assert np.ptp(shift) < 1e-6 and abs(float(shift[0]) - clock_offset) < 1e-3
+        assert ns == stamp_to_ns(msg.header.stamp) == int(round(points["timestamp"].min() * 1e9))
+        # measured within the recording, before the packets carrying the points were received
+        assert receive.min() - 0.11 < points["timestamp"].min() and points["timestamp"].max() < receive.max() + 1e-3
+
+
 def test_convert_failure_leaves_no_bag(p40, tmp_path, shared_data):
     root = _root(shared_data)
     source = tmp_path / "broken_in"
     good = _messages(root / CASES["40p"][0])
-    store = bagio.typestore()
-    packet_type = store.types["pandar_msgs/msg/PandarPacket"]
-    scan_type = store.types[PANDAR_SCAN]
-    with bagio.atomic_bag_writer(source, storage="mcap") as writer:
-        conn = bagio.add_connection(writer, "/pandar_packets", PANDAR_SCAN)
+    packet_type = message_class("pandar_msgs/msg/PandarPacket")
+    scan_type = message_class(PANDAR_SCAN)
+    with atomic_bag_writer(source, storage="mcap") as writer:
+        conn = add_connection(writer, "/pandar_packets", PANDAR_SCAN)
         for i, (ns, packets) in enumerate(good):
             if i == 3:
                 packets = [packets[0][:700]] + packets[1:]  # truncated packet in the last message
             data = [np.frombuffer(p.ljust(1500, b"\0"), dtype=np.uint8) for p in packets]
-            msg = scan_type(header=bagio.header("pandar", ns),
-                            packets=[packet_type(stamp=bagio.stamp(ns), data=d, size=len(p))
+            msg = scan_type(header=header("pandar", ns),
+                            packets=[packet_type(stamp=stamp(ns), data=d, size=len(p))
                                      for d, p in zip(data, packets)])
-            writer.write(conn, ns, bagio.serialize(msg, PANDAR_SCAN))
+            writer.write(conn, ns, serialize(msg, PANDAR_SCAN))
     out = tmp_path / "out"
     with pytest.raises(DataFormatError, match=r"broken_in.*packet 0 has 700 bytes"):
         _convert([str(source), str(out), "--calibration", str(root / "calibration" / "Pandar40P.csv"), "--quiet"])

@@ -8,11 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gd_completion import bagio
+from gd_completion.bags.reader import iter_raw, open_bag
+from gd_completion.bags.typestore import deserialize
+from gd_completion.box_messages import MARKER_CUBE, detections_to_boxes, markers_to_boxes
 from gd_completion.cli import main
 from gd_completion.datasets import kitti
 from gd_completion.geometry import box_corners
 from gd_completion.pointcloud2 import read_points
+from gd_completion.stamp_sync import stamp_to_ns
 
 KITTI = "kitti-object-sample/training"
 
@@ -52,11 +55,32 @@ def _same_box(corners_a: np.ndarray, corners_b: np.ndarray, tol: float = 1e-4) -
     return bool((d.min(axis=1) < tol).all() and (d.min(axis=0) < tol).all())
 
 
+def _rotation(q) -> np.ndarray:
+    """3x3 matrix of a unit quaternion message (x, y, z, w)."""
+    x, y, z, w = q.x, q.y, q.z, q.w
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _assert_camera_transform(tf_message, cam_to_velo: np.ndarray, stamp_ns: int) -> None:
+    """/tf_static holds velo_link -> camera_rect: translation and rotation of the calibration's camera -> lidar."""
+    (tf,) = tf_message.transforms
+    assert (tf.header.frame_id, tf.child_frame_id) == ("velo_link", "camera_rect")
+    assert stamp_to_ns(tf.header.stamp) == stamp_ns
+    t, q = tf.transform.translation, tf.transform.rotation
+    np.testing.assert_allclose([t.x, t.y, t.z], cam_to_velo[:3, 3], atol=1e-9)
+    assert math.isclose(q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2, 1.0, abs_tol=1e-12)
+    np.testing.assert_allclose(_rotation(q), cam_to_velo[:3, :3], atol=1e-6)  # orthonormal to ~5e-8 already
+    # Columns: the camera's axes in the lidar frame; it looks along the lidar's +x (z forward, x right, y down)
+    np.testing.assert_allclose(_rotation(q), [[0, 0, 1], [-1, 0, 0], [0, -1, 0]], atol=0.02)
+
+
 def _read_bag(path: Path) -> dict[str, list[tuple[int, object]]]:
     out: dict[str, list] = {}
-    with bagio.open_bag(path) as reader:
-        for conn, stamp, raw in bagio.iter_raw(reader, reader.connections):
-            out.setdefault(conn.topic, []).append((stamp, bagio.deserialize(raw, conn.msgtype)))
+    with open_bag(path) as reader:
+        for conn, stamp, raw in iter_raw(reader, reader.connections):
+            out.setdefault(conn.topic, []).append((stamp, deserialize(raw, conn.msgtype)))
     return out
 
 
@@ -79,7 +103,7 @@ def test_points_round_trip(kitti_bag: Path, shared_data: Path) -> None:
         assert [f.name for f in msg.fields] == ["x", "y", "z", "intensity"]
         assert len(pts) == len(source) == scan.stat().st_size // 16
         np.testing.assert_array_equal(np.stack([pts[n] for n in ("x", "y", "z", "intensity")], 1), source)
-        assert stamp == bagio.stamp_ns(msg.header.stamp) == k * 100_000_000  # 10 Hz synthetic stamps
+        assert stamp == stamp_to_ns(msg.header.stamp) == k * 100_000_000  # 10 Hz synthetic stamps
 
 
 def test_boxes_in_lidar_frame(kitti_bag: Path, shared_data: Path) -> None:
@@ -89,7 +113,7 @@ def test_boxes_in_lidar_frame(kitti_bag: Path, shared_data: Path) -> None:
     for (_, det), (_, markers), scan in zip(topics["/kitti/detections"], topics["/kitti/markers"],
                                             sorted((root / "velodyne").glob("*.bin"))):
         expected, sizes = _expected_corners(root / "label_2" / f"{scan.stem}.txt", root / "calib" / f"{scan.stem}.txt")
-        for boxes in (bagio.boxes_from_detections(det), bagio.boxes_from_markers(markers)):
+        for boxes in (detections_to_boxes(det).boxes, markers_to_boxes(markers).boxes):
             assert len(boxes) == len(expected)
             np.testing.assert_allclose([b.size for b in boxes], sizes)
             for box, corners in zip(boxes, expected):
@@ -99,13 +123,13 @@ def test_boxes_in_lidar_frame(kitti_bag: Path, shared_data: Path) -> None:
                 front = corners[[0, 1, 4, 5]].mean(axis=0) - corners.mean(axis=0)
                 assert math.cos(box.yaw - math.atan2(front[1], front[0])) > math.cos(0.02), (scan.stem, box)
                 assert _same_box(box_corners(box), corners, tol=0.02 + 0.01 * box.size[0]), (scan.stem, box)
-        n_vehicles += sum(b.label in ("car", "van", "truck") for b in bagio.boxes_from_detections(det))
-        cubes = [m for m in markers.markers if m.type == bagio.MARKER_CUBE]
-        assert [m.ns for m in cubes] == [b.label for b in bagio.boxes_from_detections(det)]
+        n_vehicles += sum(b.label in ("car", "van", "truck") for b in detections_to_boxes(det).boxes)
+        cubes = [m for m in markers.markers if m.type == MARKER_CUBE]
+        assert [m.ns for m in cubes] == [b.label for b in detections_to_boxes(det).boxes]
         assert det.header.frame_id == "velo_link"
     assert n_vehicles > 0
-    tf = topics["/tf_static"][0][1].transforms[0]
-    assert (tf.header.frame_id, tf.child_frame_id) == ("velo_link", "camera_rect")
+    (tf_message,) = [msg for _, msg in topics["/tf_static"]]
+    _assert_camera_transform(tf_message, _calib(root / "calib" / "000000.txt"), stamp_ns=0)
 
 
 def test_box_transform_matches_points(kitti_bag: Path, shared_data: Path) -> None:
@@ -161,6 +185,45 @@ def test_raw_layout_with_tracklets(shared_data: Path, tmp_path: Path) -> None:
     assert frames[0].boxes == []
     (box,) = frames[1].boxes
     assert box.center == pytest.approx((10, 2, -0.95)) and box.size == (4.0, 1.6, 1.5) and box.yaw == 0.3
+
+
+def test_raw_drive_calibration_gives_tf_static(shared_data: Path, tmp_path: Path) -> None:
+    """A raw drive's date folder calibration (R_rect_00, velodyne R and T; here the object sample's values in the
+    raw files' layout) becomes the /tf_static transform velo_link -> camera_rect."""
+    object_calib = shared_data / KITTI / "calib" / "000000.txt"
+    rows = dict(line.split(":", 1) for line in object_calib.read_text().splitlines() if ":" in line)
+    tr = np.array(rows["Tr_velo_to_cam"].split(), float).reshape(3, 4)
+    date = tmp_path / "2011_09_26"
+    drive = date / "2011_09_26_drive_0001_sync"
+    data = drive / "velodyne_points" / "data"
+    data.mkdir(parents=True)
+    (date / "calib_cam_to_cam.txt").write_text(
+        "calib_time: 09-Jan-2012 13:57:47\ncorner_dist: 9.950000e-02\nS_00: 1.392000e+03 5.120000e+02\n"
+        f"R_rect_00: {rows['R0_rect'].strip()}\n")
+    (date / "calib_velo_to_cam.txt").write_text(
+        "calib_time: 15-Mar-2012 11:37:16\n" + "R: " + " ".join(f"{v:.12e}" for v in tr[:, :3].ravel()) + "\n"
+        + "T: " + " ".join(f"{v:.12e}" for v in tr[:, 3]) + "\ndelta_f: 0.000000e+00 0.000000e+00\n")
+    for k in range(2):
+        (data / f"{k:010d}.bin").symlink_to(shared_data / KITTI / "velodyne" / f"00000{k}.bin")
+    (drive / "velodyne_points" / "timestamps.txt").write_text(
+        "2011-09-26 13:02:25.964389445\n2011-09-26 13:02:26.067700456\n")
+    out = tmp_path / "raw_bag"
+    assert main(["convert", "kitti", str(drive), str(out), "--quiet"]) == 0
+    topics = _read_bag(out)
+    assert len(topics["/kitti/points"]) == 2
+    (tf_message,) = [msg for _, msg in topics["/tf_static"]]
+    first_stamp = topics["/kitti/points"][0][0]
+    assert first_stamp == 1317042145964389445
+    _assert_camera_transform(tf_message, _calib(object_calib), stamp_ns=first_stamp)
+
+
+def test_raw_drive_without_calibration_has_no_tf_static(shared_data: Path, tmp_path: Path) -> None:
+    drive = tmp_path / "drive"
+    (drive / "velodyne_points" / "data").mkdir(parents=True)
+    (drive / "velodyne_points" / "data" / "0000000000.bin").symlink_to(shared_data / KITTI / "velodyne" / "000000.bin")
+    (drive / "velodyne_points" / "timestamps.txt").write_text("2011-09-26 13:02:25.964389445\n")
+    assert main(["convert", "kitti", str(drive), str(tmp_path / "bag"), "--quiet"]) == 0
+    assert sorted(_read_bag(tmp_path / "bag")) == ["/kitti/detections", "/kitti/markers", "/kitti/points"]
 
 
 @pytest.mark.parametrize("problem", ["bin_size", "missing_calib", "bad_calib"])

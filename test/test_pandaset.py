@@ -9,11 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gd_completion import bagio
+from gd_completion.bags.reader import iter_raw, open_bag
+from gd_completion.bags.typestore import deserialize
+from gd_completion.box_messages import detections_to_boxes
 from gd_completion.cli import main
 from gd_completion.datasets.pandaset import PandaSetSequence
 from gd_completion.errors import DataFormatError
 from gd_completion.pointcloud2 import read_points
+from gd_completion.stamp_sync import stamp_to_ns
 
 SEQ = "pandaset-002"
 START = 55
@@ -35,9 +38,9 @@ def panda_bag(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> tu
     assert main(["convert", "pandaset", str(shared_data / SEQ), str(out), "--start", str(START),
                  "--frames", str(len(INDICES))]) == 0
     topics: dict[str, list] = {}
-    with bagio.open_bag(out) as reader:
-        for conn, stamp, raw in bagio.iter_raw(reader, reader.connections):
-            topics.setdefault(conn.topic, []).append((stamp, bagio.deserialize(raw, conn.msgtype)))
+    with open_bag(out) as reader:
+        for conn, stamp, raw in iter_raw(reader, reader.connections):
+            topics.setdefault(conn.topic, []).append((stamp, deserialize(raw, conn.msgtype)))
     return out, topics
 
 
@@ -56,7 +59,7 @@ def test_clouds_per_sensor_in_lidar_frame(panda_bag: tuple[Path, dict], shared_d
             assert msg.header.frame_id == "pandar64"
             assert [f.name for f in msg.fields] == ["x", "y", "z", "intensity", "timestamp"]
             assert len(pts) == int(mask.sum()) > 10_000
-            assert stamp == bagio.stamp_ns(msg.header.stamp) == round(stamps[index] * 1e9)
+            assert stamp == stamp_to_ns(msg.header.stamp) == round(stamps[index] * 1e9)
             xyz = np.stack([pts["x"], pts["y"], pts["z"]], 1).astype(np.float64)
             world = _rotate(poses[index]["heading"], xyz) + [poses[index]["position"][k] for k in "xyz"]
             np.testing.assert_allclose(world, data["xyz"][mask], atol=2e-3)
@@ -78,7 +81,7 @@ def test_stationary_car_stays_put_in_world(panda_bag: tuple[Path, dict], shared_
     car = min(parked, key=lambda c: math.hypot(c["position.x"], c["position.y"]))
     world_centres, sensor_centres, ids = [], [], set()
     for index, (_, det) in zip(INDICES, topics["/pandar64/detections"]):
-        boxes = bagio.boxes_from_detections(det)
+        boxes = detections_to_boxes(det).boxes
         centres = np.array([b.center for b in boxes])
         world = _rotate(poses[index]["heading"], centres) + [poses[index]["position"][k] for k in "xyz"]
         record = next(c for c in cuboids[index] if c["uuid"] == car["uuid"])
@@ -183,8 +186,8 @@ def test_devkit_layout_reads_like_npz(devkit_root: Path, shared_data: Path) -> N
 
 def test_convert_devkit_layout(devkit_root: Path, shared_data: Path, tmp_path: Path) -> None:
     def messages(bag: Path) -> list[tuple[str, int, bytes]]:
-        with bagio.open_bag(bag) as reader:
-            return [(conn.topic, stamp, bytes(raw)) for conn, stamp, raw in bagio.iter_raw(reader, reader.connections)]
+        with open_bag(bag) as reader:
+            return [(conn.topic, stamp, bytes(raw)) for conn, stamp, raw in iter_raw(reader, reader.connections)]
 
     n = str(len(DEVKIT_INDICES))
     assert main(["convert", "pandaset", str(devkit_root), str(tmp_path / "pkl"), "--frames", n]) == 0

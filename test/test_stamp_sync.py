@@ -5,7 +5,7 @@ import threading
 
 import pytest
 
-from gd_completion.stamp_sync import LatestSlot, StampSync, stamp_to_ns
+from gd_completion.stamp_sync import LatestSlot, RecordingSync, StampSync, stamp_to_ns
 
 MS = 1_000_000
 
@@ -129,3 +129,21 @@ def test_latest_slot_wakes_waiting_taker_and_close():
     slot.close()
     t.join(2)
     assert not t.is_alive() and got == ["x", None]
+
+
+def test_recording_sync_decides_every_cloud_once():
+    """Over a recording each cloud comes out once: paired, or with None when the node would give up on it
+    (boxes passed its stamp, buffer overflow, waited longer than max_wait in bag time, end of the recording)."""
+    r = RecordingSync(10 * MS, queue_size=2, max_wait_ns=1000 * MS)
+    assert r.add_cloud(0, "c0", 0) == []
+    assert r.add_boxes(3 * MS, "b0", 3 * MS) == [("c0", "b0")]   # 3 ms apart: paired
+    assert r.add_cloud(100 * MS, "c1", 100 * MS) == []
+    assert r.add_boxes(150 * MS, "b1", 150 * MS) == [("c1", None)]  # its boxes passed it
+    assert r.add_cloud(200 * MS, "c2", 200 * MS) == []
+    assert r.add_cloud(300 * MS, "c3", 300 * MS) == []
+    assert r.add_cloud(400 * MS, "c4", 400 * MS) == [("c2", None)]  # buffer of 2 overflowed
+    assert r.add_boxes(398 * MS, "b4", 1350 * MS) == [("c3", None), ("c4", "b4")]  # c3 waited > 1 s
+    assert r.add_cloud(500 * MS, "c5", 1400 * MS) == []
+    assert r.close() == [("c5", None)]
+    assert r.sync.counters.as_dict() == {"paired": 2, "cloud_no_boxes": 3, "boxes_no_cloud": 1,
+                                         "cloud_overflow": 1, "boxes_overflow": 0}

@@ -3,24 +3,31 @@ from __future__ import annotations
 
 import json
 import struct
-import time
 
 import numpy as np
 import pytest
 
 from gd_completion.errors import DataFormatError
-from gd_completion.synth.lidar import BeamPattern, scan_meshes, simulate_scan
-from gd_completion.synth.meshio import Mesh, load_mesh, load_mesh_folder, sample_surface
+from gd_completion.synth.beams import BeamPattern
+from gd_completion.synth.lidar import scan_meshes, simulate_scan
+from gd_completion.synth.meshio import (
+    Mesh,
+    box_mesh,
+    load_mesh,
+    load_mesh_folder,
+    mesh_folder_digest,
+    sample_surface,
+)
 from gd_completion.synth.vehicles import KIND_SIZE_RANGES, VEHICLE_KINDS, generate_vehicle, vehicle_label
 
 # --- helpers --------------------------------------------------------------------------------------------
 
 
-def box_mesh(size=(4.0, 2.0, 1.5), center=(0.0, 0.0, 0.0)) -> Mesh:
-    corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
-    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return Mesh(corners * np.asarray(size) + np.asarray(center), faces)
+def triangle_set(faces: np.ndarray) -> list[tuple[int, ...]]:
+    """Faces as a sorted list, each rotated to start at its smallest index (winding kept): triangulation order
+    and starting vertex do not matter, orientation does."""
+    faces = np.asarray(faces)
+    return sorted(tuple(np.roll(f, -int(np.argmin(f))).tolist()) for f in faces)
 
 
 def point_triangle_distance(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
@@ -117,6 +124,19 @@ def test_generator_determinism():
 # --- mesh files ------------------------------------------------------------------------------------------
 
 
+def raw_binary_ply(path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and faces of a binary PLY of float x, y, z and uchar/int triangles, straight from the bytes."""
+    raw = path.read_bytes()
+    body = raw.index(b"end_header\n") + len(b"end_header\n")
+    header = raw[:body].decode().split("\n")
+    assert header[1] == "format binary_little_endian 1.0"
+    counts = {t[1]: int(t[2]) for t in (line.split() for line in header) if t and t[0] == "element"}
+    vertices = np.frombuffer(raw, "<f4", counts["vertex"] * 3, body).reshape(-1, 3)
+    faces = np.frombuffer(raw, [("n", "u1"), ("i", "<i4", (3,))], counts["face"], body + vertices.nbytes)
+    assert (faces["n"] == 3).all() and body + vertices.nbytes + faces.nbytes == len(raw)
+    return vertices.astype(np.float64), faces["i"].astype(np.int64)
+
+
 def test_load_shared_ply_meshes(shared_data):
     folder = shared_data / "vehicle-meshes"
     manifest = json.loads((folder / "manifest.json").read_text())
@@ -125,6 +145,9 @@ def test_load_shared_ply_meshes(shared_data):
         mesh = load_mesh(folder / entry["file"])
         assert len(mesh.faces) > 1000
         np.testing.assert_allclose(mesh.extent, entry["extent_m"], atol=2e-3)
+        vertices, faces = raw_binary_ply(folder / entry["file"])  # file order kept: nothing merged or dropped
+        np.testing.assert_array_equal(mesh.vertices, vertices)
+        np.testing.assert_array_equal(mesh.faces, faces)
     meshes = load_mesh_folder(folder)
     assert len(meshes) == 18
     for m in meshes:
@@ -137,25 +160,54 @@ def test_load_small_ascii_files(tmp_path):
                 "end_header\n0 0 0 1\n1 0 0 1\n1 1 0 1\n0 1 0 1\n0.5 0.5 1 1\n4 0 1 2 3\n3 0 1 4\n")
     (tmp_path / "q.ply").write_text(quad_ply)
     m = load_mesh(tmp_path / "q.ply")
-    assert m.vertices.shape == (5, 3)
-    np.testing.assert_array_equal(m.faces, [[0, 1, 2], [0, 2, 3], [0, 1, 4]])
+    np.testing.assert_array_equal(m.vertices, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 1]])
+    # the quad 0-1-2-3 becomes two triangles with its winding: 0-1-2 and 0-2-3 (or 2-3-0, the same triangle)
+    assert triangle_set(m.faces) == [(0, 1, 2), (0, 1, 4), (0, 2, 3)]
     (tmp_path / "q.obj").write_text("# cube side\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvn 0 0 1\n"
                                     "f 1/1/1 2/2/1 3/3/1 4/4/1\nf -4 -3 -1\n")
     m = load_mesh(tmp_path / "q.obj")
-    np.testing.assert_array_equal(m.faces, [[0, 1, 2], [0, 2, 3], [0, 1, 3]])
+    assert m.vertices.shape == (4, 3)
+    assert triangle_set(m.faces) == [(0, 1, 2), (0, 1, 3), (0, 2, 3)]
     (tmp_path / "q.off").write_text("OFF\n# comment\n4 2 0\n0 0 0\n2 0 0\n2 2 0\n0 2 0\n3 0 1 2\n3 0 2 3\n")
     m = load_mesh(tmp_path / "q.off")
     assert m.faces.shape == (2, 3) and m.extent.tolist() == [2.0, 2.0, 0.0]
 
 
-def test_load_binary_ply_with_mixed_polygons(tmp_path):
-    head = (b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+def test_load_binary_ply_quads(tmp_path):
+    head = (b"ply\nformat binary_little_endian 1.0\nelement vertex 5\nproperty float x\nproperty float y\n"
             b"property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n")
-    verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], "<f4").tobytes()
-    faces = struct.pack("<B3i", 3, 0, 1, 2) + struct.pack("<B4i", 4, 0, 1, 2, 3)
-    (tmp_path / "b.ply").write_bytes(head + verts + faces)
+    verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0]], "<f4").tobytes()
+    (tmp_path / "b.ply").write_bytes(head + verts + struct.pack("<B4i", 4, 0, 1, 2, 3)
+                                     + struct.pack("<B4i", 4, 1, 4, 2, 3))
     m = load_mesh(tmp_path / "b.ply")
-    np.testing.assert_array_equal(m.faces, [[0, 1, 2], [0, 1, 2], [0, 2, 3]])
+    assert triangle_set(m.faces) == [(0, 1, 2), (0, 2, 3), (1, 2, 3), (1, 4, 2)]
+    # trimesh's binary PLY reader takes one list length for all faces: mixed polygons are a clear error
+    mixed = head.replace(b"vertex 5", b"vertex 4")
+    (tmp_path / "mixed.ply").write_bytes(mixed + verts[:48] + struct.pack("<B3i", 3, 0, 1, 2)
+                                         + struct.pack("<B4i", 4, 0, 1, 2, 3))
+    with pytest.raises(DataFormatError, match=r"mixed\.ply: cannot read PLY mesh"):
+        load_mesh(tmp_path / "mixed.ply")
+
+
+def test_load_glb_and_multi_part_files(tmp_path):
+    import trimesh
+
+    # glTF: +y up, +z forward, +x left; a car 4.5 m long (z), 1.8 m wide (x), 1.5 m high (y), and its wheel
+    body = trimesh.creation.box(extents=(1.8, 1.5, 4.5))
+    wheel = trimesh.creation.box(extents=(0.2, 0.6, 0.6), transform=trimesh.transformations.translation_matrix(
+        (1.0, -0.5, 1.4)))
+    (tmp_path / "car.glb").write_bytes(trimesh.Scene([body, wheel]).export(file_type="glb"))
+    m = load_mesh(tmp_path / "car.glb")
+    assert len(m.faces) == 24 and len(m.vertices) == 16
+    np.testing.assert_allclose(m.bounds, [[-2.25, -0.9, -0.8], [2.25, 1.1, 0.75]], atol=1e-6)
+    for part in m.triangles().reshape(2, 12, 3, 3):  # a rotation, not a mirror: faces still point outwards
+        normals = np.cross(part[:, 1] - part[:, 0], part[:, 2] - part[:, 0])
+        assert (np.einsum("ij,ij->i", normals, part.mean(axis=1) - part.mean(axis=(0, 1))) > 0).all()
+    (tmp_path / "two.obj").write_text("o a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+                                      "o b\nv 0 0 1\nv 1 0 1\nv 0 1 1\nf 4 5 6\n")
+    m = load_mesh(tmp_path / "two.obj")
+    np.testing.assert_array_equal(m.faces, [[0, 1, 2], [3, 4, 5]])
+    assert m.extent.tolist() == [1.0, 1.0, 1.0]
 
 
 def test_corrupt_mesh_files_raise(tmp_path, shared_data):
@@ -163,11 +215,37 @@ def test_corrupt_mesh_files_raise(tmp_path, shared_data):
     (tmp_path / "cut.ply").write_bytes(good[: len(good) // 2])
     (tmp_path / "bad.obj").write_text("v 0 0 x\nf 1 2 3\n")
     (tmp_path / "idx.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")
+    (tmp_path / "idx.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n")
+    (tmp_path / "nan.obj").write_text("v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "empty.obj").write_text("# no geometry\n")
     (tmp_path / "noply.ply").write_text("hello\n")
+    (tmp_path / "junk.glb").write_bytes(b"glTF" + bytes(40))
     (tmp_path / "mesh.stl").write_text("solid x\n")
-    for name in ("cut.ply", "bad.obj", "idx.off", "noply.ply", "mesh.stl", "missing.ply"):
+    for name in ("cut.ply", "bad.obj", "idx.off", "idx.obj", "nan.obj", "empty.obj", "noply.ply", "junk.glb",
+                 "mesh.stl", "missing.ply"):
         with pytest.raises(DataFormatError, match=name.replace(".", r"\.")):
             load_mesh(tmp_path / name)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataFormatError, match=r"empty: no \.ply/\.obj/\.off/\.glb files"):
+        load_mesh_folder(tmp_path / "empty")
+
+
+def test_mesh_folder_digest_follows_names_and_contents(tmp_path, shared_data):
+    source = shared_data / "vehicle-meshes"
+    a, b = tmp_path / "a", tmp_path / "b"
+    for folder in (a, b):
+        folder.mkdir()
+        for name in ("basic_taxi.ply", "public_bus.ply"):
+            (folder / name).write_bytes((source / name).read_bytes())
+    (b / "notes.txt").write_text("not a mesh")
+    assert mesh_folder_digest(a) == mesh_folder_digest(b)  # same meshes elsewhere, other files ignored
+    (b / "public_bus.ply").rename(b / "public_bus2.ply")
+    renamed = mesh_folder_digest(b)
+    assert renamed != mesh_folder_digest(a)
+    raw = bytearray((b / "basic_taxi.ply").read_bytes())
+    raw[-5] ^= 1  # same name, same size, one vertex index changed
+    (b / "basic_taxi.ply").write_bytes(bytes(raw))
+    assert mesh_folder_digest(b) not in (renamed, mesh_folder_digest(a))
 
 
 def test_sample_surface_is_area_weighted():
@@ -276,18 +354,23 @@ def test_azimuth_window_and_range_limit():
     assert np.linalg.norm(pts - [0.0, 0.0, 1.8], axis=1).max() <= 30.0 + 1e-3
 
 
-def test_single_car_scan_is_fast():
-    rng = np.random.default_rng(5)
-    car = generate_vehicle(rng, "sedan")
+def test_scan_is_deterministic_and_independent_of_chunking():
+    """Same generator state, same scan bit for bit, however many (ray, triangle) pairs go into one chunk."""
+    car = generate_vehicle(np.random.default_rng(5), "sedan")
     world = car.transformed(0.7, (13.0, 6.0, car.extent[2] / 2))
-    pattern = BeamPattern.named("hdl64e")
-    simulate_scan([world], (0.0, 0.0, 1.8), pattern, rng)
-    times = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        simulate_scan([world], (0.0, 0.0, 1.8), pattern, rng)
-        times.append(time.perf_counter() - t0)
-    assert min(times) < 0.1, times
+    pattern = BeamPattern.named("pandar40p")
+
+    def scan(seed: int, **kw):
+        return scan_meshes([world], (0.0, 0.0, 1.8), pattern, np.random.default_rng(seed), ground_z=0.0, **kw)
+
+    first, again, chunked = scan(1), scan(1), scan(1, max_pairs=300)  # 3 chunks -> 26
+    assert np.sum(first.object_index == 0) > 300 and np.sum(first.object_index == -1) > 1000
+    for other in (again, chunked):
+        for field in ("points", "intensity", "object_index", "ring"):
+            np.testing.assert_array_equal(getattr(first, field), getattr(other, field))
+    other_seed = scan(2)  # another seed: other dropouts and range noise, the same geometry
+    assert not np.array_equal(other_seed.points[:100], first.points[:100])
+    np.testing.assert_allclose(len(other_seed.points), len(first.points), rtol=0.02)
 
 
 # --- demo drive ------------------------------------------------------------------------------------------
@@ -297,9 +380,7 @@ def test_synthetic_drive():
     from gd_completion.geometry import crop_boxes
     from gd_completion.synth.scene import SENSOR_HEIGHT, synthetic_drive
 
-    t0 = time.perf_counter()
     frames = synthetic_drive(seed=3, n_frames=3, n_vehicles=5)
-    assert time.perf_counter() - t0 < 5.0
     again = synthetic_drive(seed=3, n_frames=3, n_vehicles=5)
     other = synthetic_drive(seed=4, n_frames=1, n_vehicles=5)
     assert len(frames) == 3

@@ -88,3 +88,81 @@ def test_warm_start_copies_matching_tensors_only(tmp_path):
     with pytest.raises(CheckpointError, match="nope.pt: file not found"):
         train(other, _data(8, 0), _data(4, 1), tmp_path / "missing", _settings(epochs=1),
               init_from=tmp_path / "nope.pt")
+
+
+# --- the train command's data cache ------------------------------------------------------------------------
+
+
+def test_dataset_cache_is_keyed_on_what_shapes_the_data(tmp_path, monkeypatch, shared_data):
+    from gd_completion.synth.dataset import build_dataset, load_dataset, save_dataset
+    from gd_completion.tools import train as train_tool
+
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    (meshes / "taxi.ply").write_bytes((shared_data / "vehicle-meshes" / "basic_taxi.ply").read_bytes())
+    builds = []
+
+    def counting_build(*args, **kwargs):
+        builds.append(kwargs)
+        return build_dataset(*args, **kwargs)
+
+    monkeypatch.setattr(train_tool, "build_dataset", counting_build)
+    cache = tmp_path / "cache"
+    spec = train_tool.DatasetSpec(2, 7, 32, 64, meshes)
+
+    def cached():
+        return train_tool.cached_dataset(cache, "train", spec, workers=1)
+
+    first = cached()
+    assert len(builds) == 1 and builds[0]["n_input"] == 32 and builds[0]["n_gt"] == 64
+    assert first["partial"].shape == (2, 32, 3) and first["metadata"]["meshes_dir"] == str(meshes)
+    [path] = cache.glob("*.npz")
+    assert path.name.startswith("train_2_s7_")
+    again = cached()
+    assert len(builds) == 1 and again["metadata"]["cache_key"] == first["metadata"]["cache_key"]
+    np.testing.assert_array_equal(again["partial"], load_dataset(path)["partial"])
+    # another mesh in the folder (same folder, same count and seed): new data in a file of its own
+    (meshes / "bus.ply").write_bytes((shared_data / "vehicle-meshes" / "public_bus.ply").read_bytes())
+    cached()
+    assert len(builds) == 2 and len(list(cache.glob("*.npz"))) == 2
+    cached()
+    assert len(builds) == 2
+    # a new generator version, other sizes, another seed: each rebuilds
+    monkeypatch.setattr(train_tool, "GENERATOR_VERSION", "gd_completion.synth/test")
+    cached()
+    spec = train_tool.DatasetSpec(2, 7, 16, 64, meshes)
+    cached()
+    spec = train_tool.DatasetSpec(2, 8, 16, 64, meshes)
+    cached()
+    assert len(builds) == 5 and len(list(cache.glob("*.npz"))) == 5
+    # a file under the expected name without the key (an older cache) or corrupt is made again, not trusted
+    [newest] = [p for p in cache.glob("train_2_s8_*.npz")]
+    save_dataset(newest, build_dataset(2, 8, n_input=16, n_gt=64))
+    cached()
+    assert len(builds) == 6 and load_dataset(newest)["metadata"]["cache_key"]["seed"] == 8
+    newest.write_bytes(b"not a zip")
+    cached()
+    assert len(builds) == 7 and load_dataset(newest)["metadata"]["meshes_dir"] == str(meshes)
+
+
+def test_train_command_tiny_run(tmp_path, caplog):
+    import json
+    import logging
+
+    from gd_completion.cli import main
+
+    (tmp_path / "tiny.json").write_text(json.dumps(TINY.to_dict()))
+    out = tmp_path / "run"
+    argv = ["train", "--output", str(out), "--samples", "4", "--val-samples", "2", "--workers", "1", "--epochs", "1",
+            "--generation-epochs", "1", "--batch-size", "2", "--config", str(tmp_path / "tiny.json")]
+    assert main(argv) == 0
+    settings = json.loads((out / "settings.json").read_text())
+    assert settings["settings"]["device"] in ("cpu", "cuda")
+    assert settings["data"]["n_input"] == TINY.num_input and settings["data"]["n_gt"] == TINY.num_output
+    assert sorted(p.name.split("_")[0] for p in out.glob("*.npz")) == ["train", "val"]
+    assert load_model(out / "last.pt").config == TINY
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        assert main(argv) == 0  # the second run reuses both data sets
+    assert "loaded 4 cached samples" in caplog.text and "loaded 2 cached samples" in caplog.text
+    assert "samples in" not in caplog.text  # "generated N samples in T s"

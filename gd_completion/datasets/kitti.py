@@ -17,6 +17,7 @@ LIDAR_FRAME = "velo_link"
 CAMERA_FRAME = "camera_rect"  # rectified reference camera (cam 0)
 OBJECT_PERIOD_NS = 100_000_000  # the object benchmark has no stamps: 10 Hz synthetic
 IGNORED_TYPES = frozenset({"DontCare"})
+RAW_CALIB_FILES = ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt")  # in a raw drive's date folder
 
 
 @dataclass(frozen=True)
@@ -103,7 +104,7 @@ def read_calib(path: str | Path) -> KittiCalib:
 def read_raw_calib(calib_dir: str | Path) -> KittiCalib:
     """Calibration of a raw drive date folder: `calib_cam_to_cam.txt` (R_rect_00) and `calib_velo_to_cam.txt`."""
     calib_dir = Path(calib_dir)
-    c2c, v2c = calib_dir / "calib_cam_to_cam.txt", calib_dir / "calib_velo_to_cam.txt"
+    c2c, v2c = (calib_dir / name for name in RAW_CALIB_FILES)
     for path in (c2c, v2c):
         if not path.is_file():
             raise DataFormatError(f"{path}: calibration file missing")
@@ -243,7 +244,9 @@ def read_tracklets(path: str | Path) -> dict[int, list[Box3D]]:
 
 
 def iter_raw_frames(drive: str | Path, *, limit: int | None = None) -> Iterator[DatasetFrame]:
-    """Frames of a raw drive folder (velodyne_points/data/*.bin + timestamps.txt, optional tracklet_labels.xml)."""
+    """Frames of a raw drive folder (velodyne_points/data/*.bin + timestamps.txt, optional tracklet_labels.xml);
+    the calibration comes from the date folder above it (`calib_cam_to_cam.txt`, `calib_velo_to_cam.txt`) when
+    it has one. Tracklet boxes are in the lidar frame already."""
     drive = Path(drive)
     data = drive / "velodyne_points" / "data"
     if not data.is_dir():
@@ -255,13 +258,15 @@ def iter_raw_frames(drive: str | Path, *, limit: int | None = None) -> Iterator[
                               f"{len(scans)} scans")
     tracklet_path = drive / "tracklet_labels.xml"
     tracks = read_tracklets(tracklet_path) if tracklet_path.exists() else {}
+    date_dir = drive.resolve().parent
+    calib = read_raw_calib(date_dir) if any((date_dir / name).exists() for name in RAW_CALIB_FILES) else None
     for scan in scans[:limit]:
         index = int(scan.stem)
         cloud = read_velodyne(scan)
         boxes = tracks.get(index, [])
         yield DatasetFrame(name=scan.stem, stamp_ns=int(stamps[index]), frame_id=LIDAR_FRAME, xyz=cloud[:, :3],
                            intensity=cloud[:, 3], boxes=boxes, source_labels=[b.label for b in boxes],
-                           track_ids=[str(b.instance_id) for b in boxes], calib=None)
+                           track_ids=[str(b.instance_id) for b in boxes], calib=calib)
 
 
 def iter_tracking_frames(root: str | Path, sequence: str, *, limit: int | None = None) -> Iterator[DatasetFrame]:

@@ -13,8 +13,9 @@ import numpy as np
 from gd_completion.datasets import DatasetFrame, normalise_label
 from gd_completion.errors import DataFormatError
 from gd_completion.geometry import Box3D
+from gd_completion.pointcloud2 import xyz_array_to_structured
+from gd_completion.rotations import quaternion_matrix
 
-SENSOR_NAMES = {0: "pandar64", 1: "pandargt"}
 SENSOR_TOPICS = {0: "/pandar64/points", 1: "/pandargt/points"}
 BOX_TOPICS = ("/pandar64/detections", "/pandar64/markers")
 # poses.json holds one lidar pose per frame (the Pandar64's); PandarGT has no separate extrinsic in this
@@ -22,19 +23,6 @@ BOX_TOPICS = ("/pandar64/detections", "/pandar64/markers")
 SENSOR_FRAME = "pandar64"
 
 LIDAR_COLUMNS = ("x", "y", "z", "i", "t", "d")  # devkit DataFrame columns: world xyz, intensity, time, sensor id
-# Hesai driver (HesaiLidar_General_ROS PointXYZIT) fields; `ring` is absent: neither layout keeps it.
-HESAI_DTYPE = np.dtype({"names": ["x", "y", "z", "intensity", "timestamp"],
-                        "formats": ["<f4", "<f4", "<f4", "<f4", "<f8"],
-                        "offsets": [0, 4, 8, 12, 16], "itemsize": 24})
-
-
-def quaternion_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
-    """3x3 rotation of a unit quaternion (normalised first)."""
-    q = np.array([w, x, y, z], dtype=np.float64)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def _load_json(path: Path) -> Any:
@@ -140,18 +128,11 @@ class PandaSetSequence:
         """(R 3x3, t 3): sensor -> world of frame `index`."""
         try:
             p = self.poses[index]
-            rotation = quaternion_matrix(*(float(p["heading"][k]) for k in "wxyz"))
+            rotation = quaternion_matrix(*(float(p["heading"][k]) for k in "xyzw"))
             translation = np.array([float(p["position"][k]) for k in "xyz"])
         except (KeyError, IndexError, TypeError, ValueError) as error:
             raise DataFormatError(f"{self.lidar_dir / 'poses.json'}: frame {index}: bad pose: {error}") from error
         return rotation, translation
-
-    def pose_matrix(self, index: int) -> np.ndarray:
-        """4x4 sensor -> world."""
-        rotation, translation = self.pose(index)
-        out = np.eye(4)
-        out[:3, :3], out[:3, 3] = rotation, translation
-        return out
 
     def cuboid_indices(self) -> list[int]:
         """Frames that have a cuboid file."""
@@ -249,9 +230,8 @@ class PandaSetSequence:
 
 
 def hesai_cloud(frame: DatasetFrame) -> np.ndarray:
-    """Structured cloud with the Hesai driver's x, y, z, intensity, timestamp (s, float64) fields."""
-    out = np.zeros(len(frame.xyz), dtype=HESAI_DTYPE)
-    out["x"], out["y"], out["z"] = frame.xyz[:, 0], frame.xyz[:, 1], frame.xyz[:, 2]
-    out["intensity"] = frame.intensity
-    out["timestamp"] = frame.extra.get("timestamp", np.zeros(len(frame.xyz)))
-    return out
+    """Structured cloud with the Hesai driver's (HesaiLidar_General_ROS PointXYZIT) fields x, y, z, intensity
+    (float32) and timestamp (s, float64; zero when the frame has none); no `ring`: neither layout keeps it."""
+    timestamp = frame.extra.get("timestamp", np.zeros(len(frame.xyz)))
+    return xyz_array_to_structured(frame.xyz, intensity=np.asarray(frame.intensity, np.float32),
+                                   timestamp=np.asarray(timestamp, np.float64))

@@ -10,6 +10,7 @@ from gd_completion.box_messages import parse_class_map
 from gd_completion.errors import BoxError, GDCompletionError
 from gd_completion.limits import FrameLimits
 from gd_completion.pipeline import LABEL_IDS
+from gd_completion.stamp_sync import SYNC_MAX_WAIT_S, SYNC_QUEUE_SIZE, SYNC_TOLERANCE_S
 
 BOXES_TYPES = ("auto", "detection3d", "marker")
 
@@ -77,10 +78,11 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                    "Pedestrian:ignore", "Cyclist:ignore"],
                   "Detector class id or name -> label, as 'id:label' strings; unmapped names are lower-cased; "
                   "'ignore' drops the box.", {}),
-    "sync_tolerance": (0.05, "Largest stamp difference (s) between a cloud and its boxes.", _float(0.0, 10.0)),
-    "sync_max_wait": (1.0, "Seconds a cloud (or boxes message) waits for its partner before it is dropped.",
+    "sync_tolerance": (SYNC_TOLERANCE_S, "Largest stamp difference (s) between a cloud and its boxes.",
+                       _float(0.0, 10.0)),
+    "sync_max_wait": (SYNC_MAX_WAIT_S, "Seconds a cloud (or boxes message) waits for its partner before it is dropped.",
                       _float(0.01, 60.0)),
-    "queue_size": (10, "Clouds and boxes messages buffered per stream while waiting for their partner.",
+    "queue_size": (SYNC_QUEUE_SIZE, "Clouds and boxes messages buffered per stream while waiting for their partner.",
                    _int(1, 1000)),
     "include_input_points": (True, "Also publish the measured points of each completed vehicle (generated=0).", {}),
     # per-frame work limits (gd_completion.limits.FrameLimits); every skip is a counter in /diagnostics

@@ -3,8 +3,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from gd_completion.synth.lidar import PATTERN_NAMES, BeamPattern, ScanResult, scan_meshes, simulate_scan
-from gd_completion.synth.meshio import Mesh, load_mesh, load_mesh_folder, sample_surface
+from gd_completion.synth.beams import PATTERN_NAMES, BeamPattern
+from gd_completion.synth.lidar import ScanResult, scan_meshes, simulate_scan
+from gd_completion.synth.meshio import Mesh, box_mesh, load_mesh, load_mesh_folder, sample_surface
 from gd_completion.synth.vehicles import VEHICLE_KINDS, generate_vehicle, perturb_mesh, vehicle_label
 
 _LAZY = {
@@ -13,7 +14,7 @@ _LAZY = {
 }
 
 __all__ = [
-    "PATTERN_NAMES", "BeamPattern", "ScanResult", "scan_meshes", "simulate_scan", "Mesh", "load_mesh",
+    "PATTERN_NAMES", "BeamPattern", "ScanResult", "scan_meshes", "simulate_scan", "Mesh", "box_mesh", "load_mesh",
     "load_mesh_folder", "sample_surface", "VEHICLE_KINDS", "generate_vehicle", "perturb_mesh", "vehicle_label",
     *_LAZY,
 ]

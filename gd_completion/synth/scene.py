@@ -6,8 +6,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from gd_completion.geometry import Box3D
-from gd_completion.synth.lidar import BeamPattern, scan_meshes
-from gd_completion.synth.meshio import Mesh, merge_meshes
+from gd_completion.synth.beams import BeamPattern
+from gd_completion.synth.lidar import scan_meshes
+from gd_completion.synth.meshio import Mesh, box_mesh, merge_meshes
 from gd_completion.synth.vehicles import VEHICLE_KINDS, generate_vehicle, vehicle_label
 
 __all__ = ["SyntheticFrame", "synthetic_drive", "SENSOR_HEIGHT", "FRAME_PERIOD_NS"]
@@ -75,9 +76,6 @@ def _place_actor(rng: np.random.Generator, times: np.ndarray) -> _Actor:
 
 def _buildings(rng: np.random.Generator, x_from: float, x_to: float) -> Mesh:
     """Facades along both kerbs with gaps (static clutter that occludes and is occluded)."""
-    corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (0.0, 1.0)])
-    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
     parts = []
     for side in (-1.0, 1.0):
         x = x_from
@@ -86,7 +84,7 @@ def _buildings(rng: np.random.Generator, x_from: float, x_to: float) -> Mesh:
             if rng.random() < 0.8:
                 size = np.array([length, rng.uniform(6, 12), rng.uniform(4, 15)])
                 y = (_PARK_RIGHT - 5.0 if side < 0 else _PARK_LEFT + 5.0) + side * size[1] / 2
-                parts.append(Mesh(corners * size + [x + length / 2, y, 0.0], faces))
+                parts.append(box_mesh(size, (x + length / 2, y, size[2] / 2)))  # standing on z = 0
             x += length + rng.uniform(1, 8)
     return merge_meshes(parts)
 

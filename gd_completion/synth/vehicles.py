@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gd_completion.synth.meshio import Mesh, load_mesh, load_mesh_folder, merge_meshes, sample_surface
+from gd_completion.synth.meshio import Mesh, box_mesh, load_mesh, load_mesh_folder, merge_meshes, sample_surface
 
 __all__ = [
     "VEHICLE_KINDS", "KIND_SIZE_RANGES", "Mesh", "generate_vehicle", "vehicle_label", "perturb_mesh",
@@ -88,13 +88,6 @@ def _loft(stations: np.ndarray, loops: np.ndarray) -> Mesh:
     return Mesh(np.concatenate([verts, centres]), faces)
 
 
-def _box(center: np.ndarray, size: np.ndarray) -> Mesh:
-    corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
-    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return Mesh(center + corners * size, faces)
-
-
 def _wheel(center: np.ndarray, radius: float, width: float, n_seg: int = 18) -> Mesh:
     """Cylinder with its axis along y."""
     a = np.linspace(0.0, 2 * np.pi, n_seg, endpoint=False)
@@ -173,7 +166,7 @@ def generate_vehicle(rng: np.random.Generator, kind: str | None = None) -> Mesh:
     mz = belt + rng.uniform(0.05, 0.15)
     msize = np.array([0.12, mirror_out + 0.06, 0.13]) * (1.6 if kind in ("bus", "box_truck") else 1.0)
     for side in (-1.0, 1.0):
-        parts.append(_box(np.array([min(mx, length / 2 - 0.1), side * (width / 2 - msize[1] / 2), mz]), msize))
+        parts.append(box_mesh(msize, np.array([min(mx, length / 2 - 0.1), side * (width / 2 - msize[1] / 2), mz])))
     mesh = merge_meshes(parts)
     mesh = _deform(mesh, rng, 0.02)
     return fit_to_size(mesh, np.array([length, width, height]))

@@ -4,80 +4,68 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
-import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from gd_completion import bagio
+from gd_completion.bags.messages import detection3d_array_msg, marker_array_msg, pointcloud2_msg, tf_static_msg
+from gd_completion.bags.typestore import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2, TF_MESSAGE, serialize
+from gd_completion.bags.writer import STORAGES, add_connection, atomic_bag_writer
 from gd_completion.datasets import DatasetFrame
 from gd_completion.errors import DataFormatError
-from gd_completion.pointcloud2 import write_points
+from gd_completion.pointcloud2 import write_points, xyz_array_to_structured
+from gd_completion.progress import progress_bar
 from gd_completion.tools.convert_hesai import add_hesai_parser
 
 KITTI_TOPICS = ("/kitti/points", "/kitti/detections", "/kitti/markers")
 TF_STATIC = "/tf_static"
 
 
-@dataclass
-class SensorStream:
-    """One cloud topic of a conversion: its topic and how frames become structured clouds."""
-
-    topic: str
-    frames: Iterable[DatasetFrame]
-
-
 def kitti_cloud(frame: DatasetFrame) -> np.ndarray:
     """x y z intensity float32 structured array (the KITTI velodyne layout)."""
-    out = np.empty(len(frame.xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
-    out["x"], out["y"], out["z"] = frame.xyz[:, 0], frame.xyz[:, 1], frame.xyz[:, 2]
-    out["intensity"] = frame.intensity
-    return out
+    return xyz_array_to_structured(frame.xyz, intensity=np.asarray(frame.intensity, np.float32))
 
 
 def write_bag(out: Path, storage: str, clouds: Sequence[tuple[str, str]], boxes_topics: tuple[str, str] | None,
               frames: Iterable[tuple[str, DatasetFrame, np.ndarray]],
               tf_static: Sequence[tuple[str, str, np.ndarray]] = (), overwrite: bool = False,
-              quiet: bool = False) -> dict[str, int]:
+              quiet: bool = False, total: int | None = None) -> dict[str, int]:
     """Write frames to a new bag atomically.
 
     `clouds`: (topic, frame key) pairs; `frames` yields (cloud topic, frame, structured cloud); boxes of the
-    first cloud topic go to `boxes_topics` (Detection3DArray topic, MarkerArray topic). Returns message counts.
+    first cloud topic go to `boxes_topics` (Detection3DArray topic, MarkerArray topic). `total`: frames
+    expected, for the progress bar. Returns message counts.
     """
     counts: dict[str, int] = {}
-    start = time.perf_counter()
-    with bagio.atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer:
-        conns = {topic: bagio.add_connection(writer, topic, bagio.POINTCLOUD2) for topic, _ in clouds}
+    with (atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer,
+          progress_bar(out.name, "frames", total=total, quiet=quiet) as bar):
+        conns = {topic: add_connection(writer, topic, POINTCLOUD2) for topic, _ in clouds}
         det_conn = mark_conn = None
         if boxes_topics is not None:
-            det_conn = bagio.add_connection(writer, boxes_topics[0], bagio.DETECTION3D_ARRAY)
-            mark_conn = bagio.add_connection(writer, boxes_topics[1], bagio.MARKER_ARRAY)
+            det_conn = add_connection(writer, boxes_topics[0], DETECTION3D_ARRAY)
+            mark_conn = add_connection(writer, boxes_topics[1], MARKER_ARRAY)
         box_topic_source = clouds[0][0]
         tf_written = False
         for topic, frame, cloud in frames:
             ns = frame.stamp_ns
             if tf_static and not tf_written:
-                tf_conn = bagio.add_connection(writer, TF_STATIC, bagio.TF_MESSAGE, latched=True)
-                writer.write(tf_conn, ns, bagio.serialize(bagio.tf_static_msg(tf_static, ns), bagio.TF_MESSAGE))
+                tf_conn = add_connection(writer, TF_STATIC, TF_MESSAGE, latched=True)
+                writer.write(tf_conn, ns, serialize(tf_static_msg(tf_static, ns), TF_MESSAGE))
                 counts[TF_STATIC] = 1
                 tf_written = True
-            msg = bagio.pointcloud2_msg(write_points(cloud), frame.frame_id, ns)
-            writer.write(conns[topic], ns, bagio.serialize(msg, bagio.POINTCLOUD2))
+            msg = pointcloud2_msg(write_points(cloud), frame.frame_id, ns)
+            writer.write(conns[topic], ns, serialize(msg, POINTCLOUD2))
             counts[topic] = counts.get(topic, 0) + 1
-            if det_conn is not None and topic == box_topic_source:
-                det = bagio.detection3d_array_msg(frame.boxes, frame.frame_id, ns)
-                writer.write(det_conn, ns, bagio.serialize(det, bagio.DETECTION3D_ARRAY))
-                mark = bagio.marker_array_msg(frame.boxes, frame.frame_id, ns)
-                writer.write(mark_conn, ns, bagio.serialize(mark, bagio.MARKER_ARRAY))
-                for t in boxes_topics:
-                    counts[t] = counts.get(t, 0) + 1
-            if not quiet:
-                done = counts[box_topic_source] if box_topic_source in counts else 0
-                print(f"\r{out.name}: {done} frames, {time.perf_counter() - start:.1f} s", end="", file=sys.stderr)
-    if not quiet:
-        print(file=sys.stderr)
+            if topic == box_topic_source:
+                bar.update(1)
+                if det_conn is not None:
+                    det = detection3d_array_msg(frame.boxes, frame.frame_id, ns)
+                    writer.write(det_conn, ns, serialize(det, DETECTION3D_ARRAY))
+                    mark = marker_array_msg(frame.boxes, frame.frame_id, ns)
+                    writer.write(mark_conn, ns, serialize(mark, MARKER_ARRAY))
+                    for t in boxes_topics:
+                        counts[t] = counts.get(t, 0) + 1
     return counts
 
 
@@ -136,12 +124,13 @@ def convert_pandaset(src: Path, out: Path, *, storage: str = "mcap", limit: int 
                 yield pandaset.SENSOR_TOPICS[sensor], frame, pandaset.hesai_cloud(frame)
 
     topics = [(pandaset.SENSOR_TOPICS[s], pandaset.SENSOR_FRAME) for s in sensors]
-    return write_bag(out, storage, topics, pandaset.BOX_TOPICS, frames(), overwrite=overwrite, quiet=quiet)
+    return write_bag(out, storage, topics, pandaset.BOX_TOPICS, frames(), overwrite=overwrite, quiet=quiet,
+                     total=len(indices))
 
 
 def _run_kitti(args: argparse.Namespace) -> int:
     counts = convert_kitti(Path(args.source), Path(args.output), storage=args.storage, limit=args.frames,
-                           sequence=args.sequence, overwrite=args.overwrite)
+                           sequence=args.sequence, overwrite=args.overwrite, quiet=args.quiet)
     print(f"wrote {args.output}: " + ", ".join(f"{t} {n}" for t, n in counts.items()))
     return 0
 
@@ -149,7 +138,7 @@ def _run_kitti(args: argparse.Namespace) -> int:
 def _run_pandaset(args: argparse.Namespace) -> int:
     sensors = [int(s) for s in args.sensors.split(",") if s.strip()]
     counts = convert_pandaset(Path(args.source), Path(args.output), storage=args.storage, limit=args.frames,
-                              sensors=sensors, start=args.start, overwrite=args.overwrite)
+                              sensors=sensors, start=args.start, overwrite=args.overwrite, quiet=args.quiet)
     print(f"wrote {args.output}: " + ", ".join(f"{t} {n}" for t, n in counts.items()))
     return 0
 
@@ -157,9 +146,10 @@ def _run_pandaset(args: argparse.Namespace) -> int:
 def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("source", help="dataset folder")
     parser.add_argument("output", help="output bag folder (must not exist)")
-    parser.add_argument("--storage", choices=bagio.STORAGES, default="mcap", help="rosbag2 storage (default mcap)")
+    parser.add_argument("--storage", choices=STORAGES, default="mcap", help="rosbag2 storage (default mcap)")
     parser.add_argument("--frames", type=int, default=None, help="convert at most this many frames")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar and notes")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -3,17 +3,21 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 from numpy.lib.recfunctions import repack_fields
 
-from gd_completion import bagio
+from gd_completion.bags.messages import pointcloud2_msg
+from gd_completion.bags.reader import iter_raw, open_bag
+from gd_completion.bags.typestore import POINTCLOUD2, deserialize, serialize
+from gd_completion.bags.writer import STORAGES, add_connection, atomic_bag_writer
 from gd_completion.errors import BagError
 from gd_completion.hesai import ScanAssembler, load_calibration
 from gd_completion.hesai.packets import MODELS, packet_time_s, packets_to_array, parse_packets
 from gd_completion.pointcloud2 import write_points
+from gd_completion.progress import progress_bar
+from gd_completion.stamp_sync import stamp_to_ns
 
 PANDAR_SCAN = "pandar_msgs/msg/PandarScan"
 DEFAULT_OUTPUT_TOPIC = "/pandar_points"
@@ -33,7 +37,7 @@ def add_hesai_parser(convert_subparsers: argparse._SubParsersAction) -> argparse
     parser.add_argument("--frame-id", default="hesai_lidar", help="frame_id of the clouds (default hesai_lidar)")
     parser.add_argument("--input-topic", default=None, help="PandarScan topic (default: the only one in the bag)")
     parser.add_argument("--output-topic", default=DEFAULT_OUTPUT_TOPIC, help=f"default {DEFAULT_OUTPUT_TOPIC}")
-    parser.add_argument("--storage", choices=bagio.STORAGES, default="mcap", help="rosbag2 storage (default mcap)")
+    parser.add_argument("--storage", choices=STORAGES, default="mcap", help="rosbag2 storage (default mcap)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
     parser.add_argument("--min-range", type=float, default=0.3, help="metres (default 0.3)")
     parser.add_argument("--max-range", type=float, default=200.0, help="metres (default 200)")
@@ -43,7 +47,7 @@ def add_hesai_parser(convert_subparsers: argparse._SubParsersAction) -> argparse
                              "receive stamps (lines up with other topics); 'sensor' keeps the lidar's own clock")
     parser.add_argument("--keep-partial", action="store_true",
                         help="also write the incomplete first and last rotations of the recording")
-    parser.add_argument("--quiet", action="store_true", help="no progress line")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar and summary")
     parser.set_defaults(func=run_convert_hesai)
     return parser
 
@@ -64,10 +68,10 @@ def iter_scans(source: Path, assembler: ScanAssembler, *, topic: str | None = No
     """Yield (stamp ns, structured scan) for every rotation in the bag (stamp = earliest point time)."""
     offset_s = 0.0
     emitted = 0
-    with bagio.open_bag(source) as reader:
+    with open_bag(source) as reader:
         conns = _input_connections(reader, topic, source)
-        for conn, bag_ns, raw in bagio.iter_raw(reader, conns):
-            msg = bagio.deserialize(raw, PANDAR_SCAN, f"{source} ({conn.topic} at {bag_ns})")
+        for conn, bag_ns, raw in iter_raw(reader, conns):
+            msg = deserialize(raw, PANDAR_SCAN, f"{source} ({conn.topic} at {bag_ns})")
             assembler.source = f"{source} ({conn.topic} at {bag_ns})"
             packets = [bytes(p.data[: int(p.size)]) for p in msg.packets]
             if not packets:
@@ -76,7 +80,7 @@ def iter_scans(source: Path, assembler: ScanAssembler, *, topic: str | None = No
             if host_time:
                 fmt, array = packets_to_array(packets, assembler.model_name, f"{source} ({conn.topic} at {bag_ns})")
                 sensor = packet_time_s(fmt, parse_packets(fmt, array))
-                host = np.array([bagio.stamp_ns(p.stamp) for p in msg.packets], dtype=np.float64) * 1e-9
+                host = np.array([stamp_to_ns(p.stamp) for p in msg.packets], dtype=np.float64) * 1e-9
                 offset_s = float(np.median(host - sensor))
             for scan in scans:
                 emitted += 1
@@ -102,19 +106,19 @@ def run_convert_hesai(args: argparse.Namespace) -> int:
     calibration = load_calibration(args.calibration)
     assembler = ScanAssembler(calibration, model=args.model, scan_phase=args.scan_phase,
                               min_range=args.min_range, max_range=args.max_range, source=str(source))
-    count, points, start = 0, 0, time.perf_counter()
-    with bagio.atomic_bag_writer(out, storage=args.storage, overwrite=args.overwrite) as writer:
-        conn = bagio.add_connection(writer, args.output_topic, bagio.POINTCLOUD2)
+    count, points = 0, 0
+    with (atomic_bag_writer(out, storage=args.storage, overwrite=args.overwrite) as writer,
+          progress_bar(out.name, "scans", quiet=args.quiet) as bar):
+        conn = add_connection(writer, args.output_topic, POINTCLOUD2)
         for ns, scan in iter_scans(source, assembler, topic=args.input_topic, host_time=args.time == "host",
                                    keep_partial=args.keep_partial):
-            msg = bagio.pointcloud2_msg(write_points(repack_fields(scan[list(CLOUD_FIELDS)])), args.frame_id, ns)
-            writer.write(conn, ns, bagio.serialize(msg, bagio.POINTCLOUD2))
+            msg = pointcloud2_msg(write_points(repack_fields(scan[list(CLOUD_FIELDS)])), args.frame_id, ns)
+            writer.write(conn, ns, serialize(msg, POINTCLOUD2))
             count += 1
             points += scan.size
-            if not args.quiet:
-                print(f"\r{out.name}: {count} scans, {time.perf_counter() - start:.1f} s", end="", file=sys.stderr)
+            bar.update(1)
         if count == 0:
             raise BagError(f"{source}: no complete rotation decoded (use --keep-partial for short recordings)")
     if not args.quiet:
-        print(f"\r{out}: {count} scans, {points} points on {args.output_topic}", file=sys.stderr)
+        print(f"{out}: {count} scans, {points} points on {args.output_topic}", file=sys.stderr)
     return 0

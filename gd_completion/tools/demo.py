@@ -8,19 +8,20 @@ from pathlib import Path
 
 import numpy as np
 
-from gd_completion import bagio
+from gd_completion.bags.messages import detection3d_array_msg, marker_array_msg, pointcloud2_msg
+from gd_completion.bags.typestore import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2, serialize
+from gd_completion.bags.writer import add_connection, atomic_bag_writer
 from gd_completion.geometry import Box3D, normalize
-from gd_completion.pipeline import VehicleCompleter, completion_to_structured
-from gd_completion.pointcloud2 import write_points
+from gd_completion.pointcloud2 import write_points, xyz_array_to_structured
 from gd_completion.render import render_birdseye, render_vehicles
 from gd_completion.synth.scene import synthetic_drive
 
 FRAME_ID = "lidar"
 TOPICS = {
-    "points": ("/points", bagio.POINTCLOUD2),
-    "markers": ("/boxes/markers", bagio.MARKER_ARRAY),
-    "detections": ("/boxes/detections", bagio.DETECTION3D_ARRAY),
-    "completed": ("/completed_vehicles", bagio.POINTCLOUD2),
+    "points": ("/points", POINTCLOUD2),
+    "markers": ("/boxes/markers", MARKER_ARRAY),
+    "detections": ("/boxes/detections", DETECTION3D_ARRAY),
+    "completed": ("/completed_vehicles", POINTCLOUD2),
 }
 
 
@@ -44,15 +45,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def intensity_cloud(points: np.ndarray, intensity: np.ndarray) -> np.ndarray:
-    """Structured x, y, z, intensity array (the usual lidar driver layout)."""
-    cloud = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
-    cloud["x"], cloud["y"], cloud["z"] = np.asarray(points, np.float32).T
-    cloud["intensity"] = intensity
-    return cloud
-
-
 def run(args: argparse.Namespace) -> int:
+    from gd_completion.pipeline import VehicleCompleter, completion_to_structured  # torch: only when running
     started = time.perf_counter()
     frames = synthetic_drive(seed=args.seed, n_frames=args.frames, n_vehicles=args.vehicles)
     completer = VehicleCompleter.from_checkpoint(args.model or None)
@@ -60,23 +54,23 @@ def run(args: argparse.Namespace) -> int:
     bag_path = args.output / "demo_drive"
     best: dict[int, BestView] = {}
     completed = skipped = 0
-    with bagio.atomic_bag_writer(bag_path, storage="mcap", overwrite=True) as writer:
-        connections = {key: bagio.add_connection(writer, topic, msgtype) for key, (topic, msgtype) in TOPICS.items()}
+    with atomic_bag_writer(bag_path, storage="mcap", overwrite=True) as writer:
+        connections = {key: add_connection(writer, topic, msgtype) for key, (topic, msgtype) in TOPICS.items()}
 
         def put(key: str, msg, stamp_ns: int) -> None:
-            writer.write(connections[key], stamp_ns, bagio.serialize(msg, TOPICS[key][1]))
+            writer.write(connections[key], stamp_ns, serialize(msg, TOPICS[key][1]))
 
         for frame in frames:
             stamp = frame.stamp_ns
             result = completer.complete_frame(frame.points, frame.boxes)
             completed += result.stats.completed
             skipped += result.stats.skipped_total
-            put("points", bagio.pointcloud2_msg(write_points(intensity_cloud(frame.points, frame.intensity)),
-                                                FRAME_ID, stamp), stamp)
-            put("markers", bagio.marker_array_msg(frame.boxes, FRAME_ID, stamp), stamp)
-            put("detections", bagio.detection3d_array_msg(frame.boxes, FRAME_ID, stamp), stamp)
-            put("completed", bagio.pointcloud2_msg(write_points(completion_to_structured(result)), FRAME_ID, stamp),
-                stamp)
+            cloud = xyz_array_to_structured(np.asarray(frame.points, np.float32),
+                                            intensity=np.asarray(frame.intensity, np.float32))
+            put("points", pointcloud2_msg(write_points(cloud), FRAME_ID, stamp), stamp)
+            put("markers", marker_array_msg(frame.boxes, FRAME_ID, stamp), stamp)
+            put("detections", detection3d_array_msg(frame.boxes, FRAME_ID, stamp), stamp)
+            put("completed", pointcloud2_msg(write_points(completion_to_structured(result)), FRAME_ID, stamp), stamp)
             for box in frame.boxes:
                 rows = result.instance_id == box.instance_id
                 measured = result.points[rows & (result.generated == 0)]

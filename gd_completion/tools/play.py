@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from gd_completion import bagio
+from gd_completion.bags.reader import iter_raw, open_bag
 from gd_completion.errors import BagError
 
 
@@ -46,7 +46,7 @@ def play(path: str | Path, *, rate: float = 1.0, loop: bool = False, start_offse
     from rclpy.executors import ExternalShutdownException
 
     counts: dict[str, int] = {}
-    with bagio.open_bag(path) as reader:
+    with open_bag(path) as reader:
         wanted = [c for c in reader.connections if not topics or c.topic in topics]
         missing = sorted(set(topics or ()) - {c.topic for c in reader.connections})
         if missing:
@@ -72,7 +72,7 @@ def play(path: str | Path, *, rate: float = 1.0, loop: bool = False, start_offse
             first = reader.start_time + int(start_offset * 1e9)
             while True:
                 wall0 = time.monotonic()
-                for conn, stamp, raw in bagio.iter_raw(reader, conns):
+                for conn, stamp, raw in iter_raw(reader, conns):
                     if stamp < first:
                         continue
                     wait = wall0 + (stamp - first) / 1e9 / rate - time.monotonic()

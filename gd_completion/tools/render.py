@@ -7,47 +7,69 @@ from typing import Any
 
 import numpy as np
 
-from gd_completion import bagio
+from gd_completion.bags.pairing import BagPairing, RecordedCloud
+from gd_completion.bags.reader import iter_raw, open_bag
+from gd_completion.bags.topics import default_output_topic, pick_topics
+from gd_completion.bags.typestore import POINTCLOUD2, deserialize
+from gd_completion.box_messages import BoxSet
 from gd_completion.errors import BagError
-from gd_completion.geometry import normalize
+from gd_completion.geometry import Box3D, normalize
 from gd_completion.pointcloud2 import read_points, read_xyz
 from gd_completion.render import render_birdseye, render_vehicles
-from gd_completion.tools.complete import default_output_topic, pick_topics, read_boxes
+from gd_completion.stamp_sync import SYNC_TOLERANCE_S, stamp_to_ns
+from gd_completion.tools.complete import add_sync_tolerance
+
+
+def _paired_frame(reader: Any, pairing: BagPairing, frame: int) -> tuple[RecordedCloud, BoxSet | None] | None:
+    """Cloud message number `frame` and the boxes the node pairs it with (None when there is no such frame)."""
+    conns = [c for c in reader.connections if c.topic in (pairing.cloud_topic, pairing.boxes_topic)]
+    for conn, bag_ns, raw in iter_raw(reader, conns):
+        for cloud, boxes in pairing.feed(conn.topic, bag_ns, raw)[1]:
+            if cloud.index == frame:
+                return cloud, boxes
+    return next(((c, b) for c, b in pairing.close() if c.index == frame), None)
 
 
 def _cloud_at(reader: Any, topic: str, stamp: int) -> Any | None:
     conns = [c for c in reader.connections if c.topic == topic]
-    for _c, _t, raw in bagio.iter_raw(reader, conns):
-        msg = bagio.deserialize(raw, bagio.POINTCLOUD2, f"{reader.path} {topic}")
-        if bagio.stamp_ns(msg.header.stamp) == stamp:
+    for _c, _t, raw in iter_raw(reader, conns):
+        msg = deserialize(raw, POINTCLOUD2, f"{reader.path} {topic}")
+        if stamp_to_ns(msg.header.stamp) == stamp:
             return msg
     return None
 
 
+def read_frame(bag: str | Path, frame: int = 0, *, cloud_topic: str | None = None, boxes_topic: str | None = None,
+               completed_topic: str | None = None, sync_tolerance: float = SYNC_TOLERANCE_S
+               ) -> tuple[str, Any, list[Box3D], Any | None]:
+    """(cloud topic, cloud message number `frame`, its boxes in its frame as the node pairs them, its completion
+    on `completed_topic` (same stamp) or None)."""
+    with open_bag(bag) as reader:
+        cloud_topic, boxes_topic, boxes_type = pick_topics(reader, cloud_topic, boxes_topic)
+        completed_topic = completed_topic or default_output_topic(cloud_topic)
+        pairing = BagPairing(cloud_topic, boxes_topic, boxes_type, tolerance_s=sync_tolerance, source=str(bag))
+        found = _paired_frame(reader, pairing, frame)
+        if found is None:
+            raise BagError(f"{bag}: {cloud_topic} has no frame {frame}")
+        cloud, box_set = found
+        boxes = cloud.boxes_in_frame(box_set)[0]
+        completed = None
+        if completed_topic in {c.topic for c in reader.connections}:
+            completed = _cloud_at(reader, completed_topic, cloud.stamp_ns)
+    return cloud_topic, cloud.msg, boxes, completed
+
+
 def render_bag_frame(bag: str | Path, out: str | Path, *, frame: int = 0, cloud_topic: str | None = None,
                      boxes_topic: str | None = None, completed_topic: str | None = None,
-                     vehicles_out: str | Path | None = None, max_vehicles: int = 12) -> list[Path]:
+                     vehicles_out: str | Path | None = None, max_vehicles: int = 12,
+                     sync_tolerance: float = SYNC_TOLERANCE_S) -> list[Path]:
     """Render frame `frame` (index among the cloud messages) of `bag`; returns the written PNG paths.
 
     The per-vehicle image shows the `max_vehicles` completed vehicles with the most measured points.
     """
-    with bagio.open_bag(bag) as reader:
-        cloud_topic, boxes_topic, boxes_type = pick_topics(reader, cloud_topic, boxes_topic)
-        completed_topic = completed_topic or default_output_topic(cloud_topic)
-        conns = [c for c in reader.connections if c.topic == cloud_topic]
-        cloud = None
-        for k, (_c, _t, raw) in enumerate(bagio.iter_raw(reader, conns)):
-            if k == frame:
-                cloud = bagio.deserialize(raw, bagio.POINTCLOUD2, f"{bag} {cloud_topic}")
-                break
-        if cloud is None:
-            raise BagError(f"{bag}: {cloud_topic} has no frame {frame}")
-        stamp = bagio.stamp_ns(cloud.header.stamp)
-        box_set = read_boxes(reader, boxes_topic, boxes_type).get(stamp)
-        boxes = box_set.split_by_frame(cloud.header.frame_id)[0] if box_set is not None else []
-        completed = None
-        if completed_topic in {c.topic for c in reader.connections}:
-            completed = _cloud_at(reader, completed_topic, stamp)
+    cloud_topic, cloud, boxes, completed = read_frame(bag, frame, cloud_topic=cloud_topic, boxes_topic=boxes_topic,
+                                                      completed_topic=completed_topic,
+                                                      sync_tolerance=sync_tolerance)
     points = read_xyz(cloud)
     comp = read_points(completed) if completed is not None else None
     generated = comp[comp["generated"] == 1] if comp is not None and "generated" in comp.dtype.names else comp
@@ -73,7 +95,8 @@ def render_bag_frame(bag: str | Path, out: str | Path, *, frame: int = 0, cloud_
 def _run(args: argparse.Namespace) -> int:
     paths = render_bag_frame(args.bag, args.output, frame=args.frame, cloud_topic=args.cloud_topic,
                              boxes_topic=args.boxes_topic, completed_topic=args.completed_topic,
-                             vehicles_out=args.vehicles, max_vehicles=args.max_vehicles)
+                             vehicles_out=args.vehicles, max_vehicles=args.max_vehicles,
+                             sync_tolerance=args.sync_tolerance)
     for path in paths:
         print(f"wrote {path}")
     return 0
@@ -88,6 +111,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cloud-topic", default=None)
     parser.add_argument("--boxes-topic", default=None)
     parser.add_argument("--completed-topic", default=None, help="default: <namespace>/completed")
+    add_sync_tolerance(parser)
     parser.add_argument("--vehicles", default=None, help="also write per-vehicle side/top views to this PNG")
     parser.add_argument("--max-vehicles", type=int, default=12,
                         help="vehicles in the --vehicles image, most measured points first (default 12)")

@@ -3,19 +3,26 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import logging
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-import torch
+from gd_completion.errors import DataFormatError
+from gd_completion.preprocess import Preprocessing
+from gd_completion.synth.dataset import DEFAULT_PATTERNS, GENERATOR_VERSION, build_dataset, load_dataset, save_dataset
+from gd_completion.synth.meshio import mesh_folder_digest
 
-from gd_completion.model.config import GGDConfig
-from gd_completion.synth.dataset import build_dataset, load_dataset, save_dataset
-from gd_completion.train import TrainSettings, train
+if TYPE_CHECKING:
+    from gd_completion.model.config import GGDConfig
+
+# torch, the model and the training loop are imported in the functions that use them: `--help` stays light.
 
 # Seeds of the validation set are offset so that they never meet the training seeds.
 VALIDATION_SEED_OFFSET = 1_000_003
+MESH_FRACTION = 0.3  # share of the shapes drawn from --meshes (the rest are procedural)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -25,9 +32,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--val-samples", type=int, default=200, help="validation samples (default 200)")
     parser.add_argument("--seed", type=int, default=0, help="data and initialisation seed")
     parser.add_argument("--meshes", type=Path, default=None,
-                        help="extra folder of vehicle meshes (.ply/.obj/.off) mixed with procedural shapes")
+                        help="extra folder of vehicle meshes (.ply/.obj/.off/.glb) mixed with procedural shapes")
     parser.add_argument("--cache", type=Path, default=None,
-                        help="folder for the generated data sets (.npz); reused when present (default: --output)")
+                        help="folder for the generated data sets (.npz), named after everything that shapes them "
+                        "(generator version, seed, sizes, beam patterns, the meshes' contents); a file made with "
+                        "the same settings is reused (default: --output)")
     parser.add_argument("--workers", type=int, default=2, help="processes generating data (default 2)")
     parser.add_argument("--epochs", type=int, default=70)
     parser.add_argument("--generation-epochs", type=int, default=40, help="epochs with lambda=0 (paper: 40)")
@@ -37,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--beta", type=float, default=0.5, help="weight of the Laplacian shape term (paper: 0.5)")
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--lr", type=float, default=1e-3)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--device", default=None, help="torch device (default: cuda when available, else cpu)")
     parser.add_argument("--time-budget", type=float, default=None, help="stop after this many seconds")
     parser.add_argument("--resume", action="store_true", help="continue from OUTPUT/last.pt")
     parser.add_argument("--num-control", type=int, default=None, help="N_c (default: GGDConfig's 256)")
@@ -49,24 +58,64 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def cached_dataset(path: Path, n_samples: int, seed: int, meshes: Path | None, workers: int) -> dict:
-    """Load the data set at `path` if it matches (count, seed), else generate and save it."""
+@dataclasses.dataclass(frozen=True)
+class DatasetSpec:
+    """Everything that determines a generated data set (the arguments of `build_dataset` that shape it)."""
+
+    n_samples: int
+    seed: int
+    n_input: int
+    n_gt: int
+    meshes_dir: Path | None = None
+    patterns: tuple[str, ...] = DEFAULT_PATTERNS
+    mesh_fraction: float = MESH_FRACTION
+    preprocessing: Preprocessing = Preprocessing()
+
+    def key(self) -> dict[str, Any]:
+        """JSON-ready cache key: the generator version, the settings and a digest of the meshes' files."""
+        return {"generator_version": GENERATOR_VERSION, "n_samples": self.n_samples, "seed": self.seed,
+                "n_input": self.n_input, "n_gt": self.n_gt, "patterns": list(self.patterns),
+                "mesh_fraction": self.mesh_fraction if self.meshes_dir else 0.0,
+                "meshes_digest": mesh_folder_digest(self.meshes_dir) if self.meshes_dir else None,
+                "preprocessing": self.preprocessing.to_dict()}
+
+    def build(self, workers: int) -> dict[str, Any]:
+        """Generate the data set."""
+        return build_dataset(self.n_samples, self.seed, meshes_dir=self.meshes_dir, patterns=self.patterns,
+                             workers=workers, n_input=self.n_input, n_gt=self.n_gt, mesh_fraction=self.mesh_fraction,
+                             preprocessing=self.preprocessing)
+
+
+def cached_dataset(cache_dir: Path, prefix: str, spec: DatasetSpec, workers: int) -> dict[str, Any]:
+    """The data set of `spec`: loaded from `cache_dir` when a file there holds the same key, else generated and
+    saved as `<prefix>_<n>_s<seed>_<digest of the key>.npz` with the key in its metadata."""
+    key = spec.key()
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+    path = cache_dir / f"{prefix}_{spec.n_samples}_s{spec.seed}_{digest}.npz"
     if path.is_file():
-        data = load_dataset(path)
-        meta = data.get("metadata", {})
-        if len(data["partial"]) == n_samples and int(meta.get("seed", -1)) == seed:
-            logging.info("loaded %d cached samples from %s", n_samples, path)
-            return data
+        try:
+            data = load_dataset(path)
+        except DataFormatError as error:
+            logging.warning("regenerating the data set: %s", error)
+        else:
+            if data["metadata"].get("cache_key") == key:
+                logging.info("loaded %d cached samples from %s", spec.n_samples, path)
+                return data
+            logging.warning("regenerating %s: it was made with other settings", path)
     started = time.perf_counter()
-    data = build_dataset(n_samples, seed, meshes_dir=meshes, workers=workers)
+    data = spec.build(workers)
     elapsed = time.perf_counter() - started
-    logging.info("generated %d samples in %.0f s (%.1f samples/s)", n_samples, elapsed, n_samples / elapsed)
+    logging.info("generated %d samples in %.0f s (%.1f samples/s)", spec.n_samples, elapsed,
+                 spec.n_samples / max(elapsed, 1e-9))
+    data["metadata"]["cache_key"] = key
     save_dataset(path, data)
     return data
 
 
 def load_config(args: argparse.Namespace) -> GGDConfig:
     """GGDConfig from --config JSON and --num-control (the tree decoder arity follows N_c)."""
+    from gd_completion.model.config import GGDConfig
+
     fields = json.loads(args.config.read_text()) if args.config else {}
     if args.num_control is not None:
         fields["num_control"] = args.num_control
@@ -90,25 +139,30 @@ def tree_arity_for(n_points: int) -> list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from gd_completion.train import TrainSettings, train
+
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     args.output.mkdir(parents=True, exist_ok=True)
     cache = args.cache or args.output
-    train_data = cached_dataset(cache / f"train_{args.samples}_s{args.seed}.npz", args.samples, args.seed,
-                                args.meshes, args.workers)
-    val_seed = args.seed + VALIDATION_SEED_OFFSET
-    val_data = cached_dataset(cache / f"val_{args.val_samples}_s{val_seed}.npz", args.val_samples, val_seed,
-                              args.meshes, args.workers)
     config = load_config(args)
+    spec = DatasetSpec(args.samples, args.seed, config.num_input, config.num_output, args.meshes)
+    train_data = cached_dataset(cache, "train", spec, args.workers)
+    val_spec = dataclasses.replace(spec, n_samples=args.val_samples, seed=args.seed + VALIDATION_SEED_OFFSET)
+    val_data = cached_dataset(cache, "val", val_spec, args.workers)
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
                              alpha=args.alpha, beta=args.beta,
-                             batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
+                             batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=device,
                              time_budget_s=args.time_budget)
     (args.output / "settings.json").write_text(json.dumps(
         {"config": config.to_dict(), "settings": dataclasses.asdict(settings), "samples": args.samples,
          "val_samples": args.val_samples, "meshes": str(args.meshes) if args.meshes else None,
+         "data": train_data["metadata"]["cache_key"],
          "init_from": str(args.init_from) if args.init_from else None, "init_skip": args.init_skip}, indent=2))
     result = train(config, (train_data["partial"], train_data["complete"]),
                    (val_data["partial"], val_data["complete"]), args.output, settings, resume=args.resume,
-                   init_from=args.init_from, init_skip=tuple(args.init_skip))
+                   init_from=args.init_from, init_skip=tuple(args.init_skip), preprocessing=spec.preprocessing)
     print(f"train: {result.epochs_done} epochs, best checkpoint {result.best_path}, last {result.last_path}")
     return 0

@@ -1,0 +1,74 @@
+"""A bag's clouds paired with its boxes as the completer node pairs them live (RecordingSync over bag time)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from gd_completion.bags.typestore import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2, deserialize
+from gd_completion.box_messages import BoxSet, detections_to_boxes, markers_to_boxes
+from gd_completion.errors import BagError
+from gd_completion.geometry import Box3D
+from gd_completion.stamp_sync import SYNC_TOLERANCE_S, RecordingSync, SyncCounters, stamp_to_ns
+
+
+@dataclass(frozen=True)
+class RecordedCloud:
+    """One message of the cloud topic."""
+
+    index: int  # position among the cloud topic's messages
+    bag_ns: int  # bag timestamp
+    msg: Any  # the sensor_msgs/PointCloud2 (rosbags object)
+
+    @property
+    def stamp_ns(self) -> int:
+        """Header stamp (ns)."""
+        return stamp_to_ns(self.msg.header.stamp)
+
+    def boxes_in_frame(self, boxes: BoxSet | None) -> tuple[list[Box3D], int]:
+        """The paired boxes given in this cloud's frame, and how many were in another frame (no tf here)."""
+        return boxes.split_by_frame(self.msg.header.frame_id) if boxes is not None else ([], 0)
+
+
+def box_set_from_message(msg: Any, msgtype: str) -> BoxSet:
+    """The BoxSet (stamp, boxes, per-box frame) of a Detection3DArray or MarkerArray message, as the node reads it."""
+    if msgtype == DETECTION3D_ARRAY:
+        return detections_to_boxes(msg)
+    if msgtype == MARKER_ARRAY:
+        return markers_to_boxes(msg)
+    raise BagError(f"boxes topic has type {msgtype}; expected {DETECTION3D_ARRAY} or {MARKER_ARRAY}")
+
+
+class BagPairing:
+    """Feed a bag's messages in recorded order; the clouds of `cloud_topic` come out with the boxes of
+    `boxes_topic` that the node would pair them with (stamps within `tolerance_s`), or with None."""
+
+    def __init__(self, cloud_topic: str, boxes_topic: str, boxes_type: str, *,
+                 tolerance_s: float = SYNC_TOLERANCE_S, source: str = "bag") -> None:
+        self.cloud_topic, self.boxes_topic, self.boxes_type, self.source = cloud_topic, boxes_topic, boxes_type, source
+        self.sync: RecordingSync[RecordedCloud, BoxSet] = RecordingSync(int(tolerance_s * 1e9))
+        self.boxes_without_header = 0  # empty MarkerArrays: no header to pair by (the node skips them too)
+        self._clouds = 0
+
+    @property
+    def counters(self) -> SyncCounters:
+        """The synchroniser's counters (paired, cloud_no_boxes, ...), as the node reports them."""
+        return self.sync.sync.counters
+
+    def feed(self, topic: str, bag_ns: int, raw: bytes) -> tuple[RecordedCloud | None,
+                                                                 list[tuple[RecordedCloud, BoxSet | None]]]:
+        """One message: (the cloud when it is one, the clouds whose pairing it decided)."""
+        if topic == self.cloud_topic:
+            cloud = RecordedCloud(self._clouds, bag_ns, deserialize(raw, POINTCLOUD2, f"{self.source} {topic}"))
+            self._clouds += 1
+            return cloud, self.sync.add_cloud(cloud.stamp_ns, cloud, bag_ns)
+        if topic == self.boxes_topic:
+            boxes = box_set_from_message(deserialize(raw, self.boxes_type, f"{self.source} {topic}"), self.boxes_type)
+            if boxes.stamp_ns is None:
+                self.boxes_without_header += 1
+                return None, []
+            return None, self.sync.add_boxes(boxes.stamp_ns, boxes, bag_ns)
+        return None, []
+
+    def close(self) -> list[tuple[RecordedCloud, BoxSet | None]]:
+        """The bag ended: the clouds still waiting get no boxes."""
+        return self.sync.close()
