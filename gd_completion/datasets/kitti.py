@@ -126,13 +126,18 @@ def _label_from_fields(fields: Sequence[str], path: Path, line_no: int, track_id
         raise DataFormatError(f"{path}:{line_no}: bad number: {error}") from error
 
 
+def _numbered_lines(path: Path, what: str) -> list[tuple[int, str]]:
+    """(1-based line number, text) of every line of a text file; DataFormatError naming it when missing."""
+    if not path.is_file():
+        raise DataFormatError(f"{path}: {what} missing")
+    return list(enumerate(path.read_text().splitlines(), 1))
+
+
 def read_labels(path: str | Path) -> list[KittiLabel]:
     """Object-benchmark label_2 rows (DontCare dropped)."""
     path = Path(path)
-    if not path.is_file():
-        raise DataFormatError(f"{path}: label file missing")
     labels = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in _numbered_lines(path, "label file"):
         fields = line.split()
         if fields and fields[0] not in IGNORED_TYPES:
             labels.append(_label_from_fields(fields, path, n))
@@ -200,10 +205,8 @@ def iter_object_frames(root: str | Path, *, limit: int | None = None, start_ns: 
 def read_timestamps(path: str | Path) -> np.ndarray:
     """Raw-drive timestamps.txt ('YYYY-MM-DD hh:mm:ss.fffffffff') -> int64 ns since the epoch."""
     path = Path(path)
-    if not path.is_file():
-        raise DataFormatError(f"{path}: timestamps file missing")
     out = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in _numbered_lines(path, "timestamps file"):
         line = line.strip()
         if not line:
             continue

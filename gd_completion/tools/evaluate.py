@@ -25,14 +25,14 @@ def run_evaluation(args: argparse.Namespace) -> int:
         write_report,
     )
     from gd_completion.evaluation.synthetic import EVAL_SEED, control_point_ablation, evaluate_synthetic, load_heldout
-    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model, read_checkpoint_metadata
+    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, read_checkpoint_metadata
 
     start = time.perf_counter()
     synthetic_seed = EVAL_SEED if args.synthetic_seed is None else args.synthetic_seed
     if args.threads:
         torch.set_num_threads(args.threads)
     model_path = Path(args.model) if args.model else DEFAULT_WEIGHTS
-    model = load_model(model_path)
+    model, preprocessing = load_checkpoint(model_path)
     out = Path(args.output)
     meta = {k: v for k, v in read_checkpoint_metadata(model_path).items()
             if k not in ("format", "format_version", "config") and isinstance(v, (str, int, float))}
@@ -76,7 +76,8 @@ def run_evaluation(args: argparse.Namespace) -> int:
         emit(f"## PandaSet\n\nSkipped: {pandaset} not found (give --pandaset DIR).")
     else:
         t0 = time.perf_counter()
-        result = evaluate_pandaset(model, pandaset, max_frames_per_vehicle=args.max_frames_per_vehicle or None,
+        result = evaluate_pandaset(model, pandaset, preprocessing=preprocessing,
+                                   max_frames_per_vehicle=args.max_frames_per_vehicle or None,
                                    max_vehicles=args.max_vehicles, max_batch=args.max_batch)
         emit(pandaset_section(result, num_control=model.config.num_control, num_input=model.config.num_input))
         write_renders(out, "pandaset_vehicles.png", result.examples)
