@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -78,16 +79,28 @@ def _best_class(results: Sequence[Any]) -> str:
     return str(max(results, key=score).hypothesis.class_id) if len(results) else ""
 
 
+INT32_MAX = 2**31 - 1
+
+
 def _instance_id(raw: str, index: int) -> int:
-    try:
-        return int(raw)
-    except (TypeError, ValueError):
+    """int32 instance id of a detection: its `id` when that is an integer in int32 range; otherwise (a
+    tracker's UUID, an id beyond int32) a stable 31-bit hash of the text, the same in every frame; the
+    detection's index in the array when the id is empty."""
+    text = str(raw).strip()
+    if not text:
         return index
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is not None and -INT32_MAX - 1 <= value <= INT32_MAX:
+        return value
+    return zlib.crc32(text.encode()) & INT32_MAX
 
 
 def detections_to_boxes(msg: Any, class_map: Mapping[str, str] | None = None) -> BoxSet:
     """Detection3DArray -> BoxSet: bbox centre/size (x = length), class of the best-scoring hypothesis,
-    `id` as instance id when it is an integer (else the detection's index). A detection whose own header
+    `id` as int32 instance id (`_instance_id`: stable for non-integer or out-of-range ids). A detection whose own header
     names a frame uses it; otherwise the array's frame."""
     class_map = class_map or {}
     array_frame = str(msg.header.frame_id)

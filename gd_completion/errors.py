@@ -28,3 +28,12 @@ class DataFormatError(GDCompletionError):
 
 class EvaluationError(GDCompletionError):
     """An evaluation input (held-out set, checkpoint list, output folder) is missing or unusable."""
+
+
+class DeviceError(GDCompletionError):
+    """A torch device that this machine does not have (e.g. cuda without a CUDA build or GPU)."""
+
+
+class OutputError(GDCompletionError):
+    """An output (bag, PNG, report, folder) that cannot be written: a file where a folder should be, no permission,
+    a full disk."""

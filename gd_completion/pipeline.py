@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gd_completion.errors import DeviceError
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask
 from gd_completion.limits import FrameLimits, screen_boxes
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
@@ -64,6 +65,22 @@ def completion_to_structured(completion: FrameCompletion) -> np.ndarray:
     return out
 
 
+def check_device(device: str) -> None:
+    """DeviceError (one clear line) when `device` is not a torch device this machine has."""
+    try:
+        kind = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise DeviceError(f"device {device!r}: not a torch device ({exc})") from exc
+    if kind.type == "cuda":
+        if not torch.cuda.is_available():
+            raise DeviceError(f"device {device!r} requested, but this torch build or machine has no CUDA device "
+                              "(torch.cuda.is_available() is False); use device cpu")
+        if kind.index is not None and kind.index >= torch.cuda.device_count():
+            raise DeviceError(f"device {device!r}: only {torch.cuda.device_count()} CUDA device(s) here")
+    elif kind.type != "cpu":
+        raise DeviceError(f"device {device!r}: only cpu and cuda[:N] are supported")
+
+
 def default_threads() -> int:
     """Vehicle threads when none are asked for: one per CPU core available to this process."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -112,6 +129,7 @@ class VehicleCompleter:
         one per core). Sets torch's intra-op threads of this process to 1. `min_points`, `crop_margin`:
         override the checkpoint's preprocessing (None keeps it).
         """
+        check_device(device)
         if torch.device(device).type == "cpu":
             torch.set_num_threads(1)
         model, preprocessing = load_checkpoint(path or DEFAULT_WEIGHTS, device=device)

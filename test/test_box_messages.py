@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import zlib
 
 import pytest
 from builtin_interfaces.msg import Time
@@ -124,7 +125,9 @@ def test_detections_to_boxes():
     bs = detections_to_boxes(_detection_array(), CLASS_MAP)
     assert bs.stamp_ns == 3_000_000_007
     assert [b.label for b in bs.boxes] == ["car", "truck", ""]  # best score wins; no result -> no label
-    assert [b.instance_id for b in bs.boxes] == [41, 1, 2]  # non-integer id -> index
+    ids = [b.instance_id for b in bs.boxes]
+    assert ids[0] == 41 and ids[2] == 2        # integer id kept; an empty id -> the detection's index
+    assert ids[1] == zlib.crc32(b"track-b") & 0x7FFFFFFF and 0 <= ids[1] < 2**31   # text id -> stable hash
     assert bs.boxes[0].yaw == pytest.approx(0.7) and bs.boxes[1].yaw == pytest.approx(-2.0)
     assert bs.boxes[0].size == pytest.approx((4.5, 1.9, 1.6)) and bs.boxes[1].center[0] == pytest.approx(6.0)
     assert bs.frame_ids == ("velo", "velo", "map")
@@ -146,6 +149,18 @@ def test_detections_to_boxes_duck_typed():
     bs = detections_to_boxes(arr, CLASS_MAP)
     assert bs.stamp_ns == 1_000_000_002
     assert [b.label for b in bs.boxes] == ["ignore", "car"]  # a NaN score ranks last
-    assert [b.instance_id for b in bs.boxes] == [3, 1]
+    assert [b.instance_id for b in bs.boxes] == [3, zlib.crc32(b"x") & 0x7FFFFFFF]
     assert bs.boxes[0].yaw == pytest.approx(1.0) and bs.boxes[0].center == pytest.approx((2.0, 1.0, 0.5))
     assert bs.split_by_frame("velo") == ([bs.boxes[0]], 1)
+
+
+def test_detection_ids_map_to_stable_int32():
+    from gd_completion.box_messages import _instance_id
+
+    assert _instance_id("7", 0) == 7 and _instance_id("-3", 0) == -3 and _instance_id(" 12 ", 0) == 12
+    assert _instance_id("2147483647", 0) == 2**31 - 1
+    big = _instance_id("99999999999", 4)          # beyond int32: hashed, not an OverflowError
+    assert 0 <= big < 2**31 and big == _instance_id("99999999999", 9)
+    uuid = "0b6c6e2c-5f0e-4c1e-9d8a-3f1e2d4c5b6a"
+    assert _instance_id(uuid, 1) == _instance_id(uuid, 5) != _instance_id(uuid + "x", 1)
+    assert _instance_id("", 6) == 6

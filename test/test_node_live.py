@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 import os
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -19,7 +21,7 @@ from gd_completion.pipeline import LABEL_IDS
 from gd_completion.pointcloud2 import read_points
 
 rclpy = pytest.importorskip("rclpy")
-from ros_live import DOMAIN_ID, Client, NodeProcess, ros_env  # noqa: E402
+from ros_live import DOMAIN_ID, REPO, Client, NodeProcess, ros_env  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
@@ -381,3 +383,136 @@ def test_model_size_mismatch_is_a_clear_error(ros_context, tmp_path):
     assert code == 2
     assert "num_input_points=999 does not match the checkpoint" in node.stderr
     assert "Traceback" not in node.stderr
+
+
+# -- hostile input, live parameters, sim time, configuration errors (issue 11) --------------------------
+
+def test_hostile_boxes_are_screened_and_counted(marker_node, frames):
+    """200 duplicates, 20 boxes of 10 km and a box in millimetres next to a real car: the car is completed,
+    nothing of the cloud is re-published as measured points of the hostile boxes, every skip is counted."""
+    node, client = marker_node
+    base = client.settled_diagnostics()
+    car = frames[3].boxes[0]
+    hostile = ([Box3D(car.center, car.size, car.yaw, "car", 500 + i) for i in range(200)]
+               + [Box3D(car.center, (1e4, 1e4, 1e4), 0.0, "car", 800 + i) for i in range(20)]
+               + [Box3D(car.center, tuple(s * 1000 for s in car.size), car.yaw, "car", 900)])
+    stamp = client.send(frames[3], boxes=frames[3].boxes + hostile)
+    msg = client.wait_reply(stamp)
+    assert msg is not None, node.stderr[-2000:]
+    pts = check_completion(msg, frames[3], stamp, {0})
+    inside = len(crop_boxes(np.stack([pts["x"], pts["y"], pts["z"]], 1), [car], 0.2)[0])
+    assert inside == len(pts)                      # every published point belongs to the real car
+    deltas = client.wait_diagnostics(base, {"skipped_duplicate_box": 200, "skipped_implausible_box": 21})
+    assert deltas == {"skipped_duplicate_box": 200, "skipped_implausible_box": 21}
+
+
+def test_param_set_applied_or_refused(marker_node, frames, ros_context):
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    node, client = marker_node
+    params = AsyncParameterClient(client.node, "/marker")
+    assert params.wait_for_services(timeout_sec=10.0)
+
+    def set_params(**values) -> list:
+        future = params.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+        end = time.monotonic() + 10.0
+        while not future.done() and time.monotonic() < end:
+            time.sleep(0.05)
+        return list(future.result().results)
+
+    base = client.settled_diagnostics()
+    assert set_params(min_points=100000)[0].successful      # live: no car has that many points
+    stamp = client.send(frames[3])
+    msg = client.wait_reply(stamp)
+    assert msg is not None and msg.width == 0
+    assert client.wait_diagnostics(base, {"skipped_too_few_points": 1})["skipped_too_few_points"] >= 1
+    assert set_params(min_points=0)[0].successful            # back to the checkpoint's value
+    assert client.send_until_reply(frames[3]).width > 0
+    refused = set_params(cloud_topic="elsewhere")[0]          # read-only: refused with a reason
+    assert not refused.successful and "read-only" in refused.reason
+    refused = set_params(crop_margin=-0.5)[0]                 # in the declared range, but not -1 nor >= 0
+    assert not refused.successful and "crop_margin" in refused.reason
+    refused = set_params(max_boxes=0)[0]
+    assert not refused.successful
+    assert "parameters changed: min_points=100000" in node.stderr
+
+
+def test_sim_time_without_clock_keeps_housekeeping(ros_context, frames, tmp_path):
+    with own_node(ros_context, tmp_path, "simtime", params={"use_sim_time": "true"}) as (node, client):
+        client.warm_up(frames[3])
+        base = client.settled_diagnostics()
+        client.cloud_pub.publish(cloud_msg(frames[3].points, client.next_stamp()))   # never gets boxes
+        deltas = client.wait_diagnostics(base, {"drop_cloud_no_boxes": 1}, timeout=8.0)
+        assert deltas["drop_cloud_no_boxes"] == 1       # expired on the steady clock, diagnostics still flow
+        end = time.monotonic() + 10.0
+        while "nothing publishes /clock" not in node.stderr and time.monotonic() < end:
+            time.sleep(0.2)
+        assert node.stderr.count("nothing publishes /clock") == 1
+
+
+def test_detection_id_beyond_int32_is_hashed(ros_context, frames, tmp_path):
+    import zlib
+
+    import interfaces
+
+    msgs = interfaces.import_vision_msgs()
+    from kitti_frames import detection_array
+
+    def with_big_id(boxes, stamp_ns, frame_id):
+        array = detection_array(boxes, stamp_ns, frame_id)
+        for det in array.detections:
+            det.id = "99999999999"
+        return array
+    env = interfaces.vision_msgs_env({**os.environ, **ros_context[0]})
+    with own_node(ros_context, tmp_path, "bigid", params={"boxes_type": "detection3d"}, env=env,
+                  boxes_cls=msgs.Detection3DArray) as (node, client):
+        client.boxes_msg = with_big_id
+        client.warm_up(frames[3])
+        msg = client.send_until_reply(frames[3])
+        ids = set(read_points(msg)["instance_id"].tolist())
+        assert ids == {zlib.crc32(b"99999999999") & 0x7FFFFFFF}
+        assert "OverflowError" not in node.stderr
+
+
+def test_double_sigint_mid_frame_exits_cleanly(ros_context, frames, tmp_path):
+    """What `ros2 launch` does on Ctrl-C: SIGINT, then another one, while frames are being completed."""
+    with own_node(ros_context, tmp_path, "sigint2", stop_signal=signal.SIGINT) as (node, client):
+        client.warm_up(frames[4])
+        for _ in range(3):
+            client.send(frames[4])
+        time.sleep(0.15)
+        node.proc.send_signal(signal.SIGINT)
+        time.sleep(0.05)
+        node.proc.send_signal(signal.SIGINT)
+        assert node.proc.wait(timeout=20) == 0, node.stderr[-2000:]
+    assert "Traceback" not in node.stderr and "terminate called" not in node.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["-p", "min_points:=abc"], "parameter min_points"),
+    (["-p", "crop_margin:=10.0"], "parameter crop_margin"),
+    (["--params-file", "/nonexistent/completer.yaml"], "params file"),
+    (["-p", "device:=cuda:7"], "device 'cuda:7'"),
+    (["-p", "num_input_points:=999"], "num_input_points=999 does not match the checkpoint"),
+], ids=["wrong type", "out of range", "missing params file", "no such device", "model size"])
+def test_configuration_errors_are_one_line_exit_2(ros_context, tmp_path, args, message):
+    env, _ = ros_context
+    proc = subprocess.run([sys.executable, "-m", "gd_completion.ros.completer_node", "--ros-args", *args],
+                          cwd=REPO, env={**os.environ, **env}, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert message in proc.stderr and "Traceback" not in proc.stderr
+    assert "weights_only=False" not in proc.stderr
+
+
+def test_help_and_unknown_parameters(ros_context, tmp_path):
+    env, _ = ros_context
+    help_run = subprocess.run([sys.executable, "-m", "gd_completion.ros.completer_node", "--help"], cwd=REPO,
+                              env={**os.environ, **env}, capture_output=True, text=True, timeout=60)
+    assert help_run.returncode == 0 and "min_points" in help_run.stdout and "live" in help_run.stdout
+    node = NodeProcess(tmp_path, {**BASE_PARAMS, "min_point": "5"}, env, "typo")
+    try:
+        node.wait_ready()
+        assert "unknown parameter 'min_point' is ignored (did you mean 'min_points'?)" in node.stderr
+    finally:
+        assert node.stop(signal.SIGTERM) == 0

@@ -44,3 +44,47 @@ def test_config_file_matches_declarations():
 def test_comment_parser():
     text = "n:\n  ros__parameters:\n    # First line.\n    a: 1\n    # Two\n    # lines.\n    b: [x, y]\n    c: 2\n"
     assert parameter_comments(text) == {"a": "First line.", "b": "Two lines.", "c": ""}
+
+
+def test_unknown_parameters_and_params_file_sections(tmp_path):
+    from gd_completion.ros.params import params_file_problems, unknown_parameters
+
+    assert unknown_parameters(["min_points", "use_sim_time", "qos_overrides./points.subscription.depth"]) == []
+    assert unknown_parameters(["min_point", "zzz"]) == [
+        "unknown parameter 'min_point' is ignored (did you mean 'min_points'?)", "unknown parameter 'zzz' is ignored"]
+    good, wrong = tmp_path / "good.yaml", tmp_path / "wrong.yaml"
+    good.write_text("/completer:\n  ros__parameters:\n    min_points: 5\n")
+    wrong.write_text("other_node:\n  ros__parameters:\n    min_points: 5\n")
+    args = ["--ros-args", "--params-file", str(good), "--params-file", str(wrong)]
+    problems = params_file_problems(args, ("completer",))
+    assert len(problems) == 1 and str(wrong) in problems[0] and "other_node" in problems[0]
+    assert params_file_problems(["--ros-args", "--params-file", str(wrong)], ("other_node",)) == []
+
+
+def test_live_and_read_only_parameters():
+    from gd_completion.ros.params import LIMIT_PARAMETERS, LIVE_PARAMETERS, PARAMETERS
+
+    assert LIVE_PARAMETERS <= set(PARAMETERS) and set(LIMIT_PARAMETERS) <= LIVE_PARAMETERS
+    assert {"cloud_topic", "model_path", "device", "num_threads", "queue_size"}.isdisjoint(LIVE_PARAMETERS)
+
+
+def test_device_and_checkpoint_errors_are_clear(tmp_path):
+    import torch
+
+    from gd_completion.errors import CheckpointError, DeviceError
+    from gd_completion.model.checkpoint import read_checkpoint
+    from gd_completion.pipeline import check_device
+
+    check_device("cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(DeviceError, match="no CUDA device"):
+            check_device("cuda")
+    with pytest.raises(DeviceError, match="only cpu and cuda"):
+        check_device("mps")
+    with pytest.raises(DeviceError, match="not a torch device"):
+        check_device("gpu0")
+    junk = tmp_path / "junk.pt"
+    torch.save({"f": print}, junk)          # a pickle of a Python object: refused without running it
+    with pytest.raises(CheckpointError) as info:
+        read_checkpoint(junk)
+    assert "weights_only=False" not in str(info.value) and "junk.pt" in str(info.value)

@@ -42,8 +42,10 @@ def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
     try:
         data = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # truncated zip, pickle garbage, disallowed globals...
-        raise CheckpointError(f"checkpoint {path}: cannot be read (corrupt, truncated or not a torch file): "
-                              f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from exc
+        # torch's own message suggests weights_only=False, i.e. running the file's code: not repeated here
+        raise CheckpointError(f"checkpoint {path}: cannot be read as a weights-only torch checkpoint (corrupt, "
+                              f"truncated, not a torch file, or it holds Python objects) [{type(exc).__name__}]"
+                              ) from exc
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path}: not a gd_completion GGDNet checkpoint (no format={FORMAT!r})")
     if data.get("format_version") != FORMAT_VERSION:

@@ -1,19 +1,26 @@
 """ROS 2 node `completer`: pairs clouds with 3D boxes by stamp and publishes completed vehicle clouds."""
 from __future__ import annotations
 
+import math
+import os
+import signal
 import sys
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64, Header
 from visualization_msgs.msg import MarkerArray
@@ -24,17 +31,27 @@ from gd_completion.pipeline import VehicleCompleter, completion_to_structured
 from gd_completion.pointcloud2 import read_xyz
 from gd_completion.ros.cloud_messages import structured_to_msg
 from gd_completion.ros.params import (
+    LIVE_PARAMETERS,
+    PARAMETERS,
     CompleterParams,
     ParameterError,
     check_model_sizes,
     declare_parameters,
+    params_file_problems,
     read_parameters,
+    unknown_parameters,
+    validate,
 )
 from gd_completion.stamp_sync import LatestSlot, Pair, StampSync, stamp_to_ns
 
 NODE_NAME = "completer"
-WARN_THROTTLE_S = 5.0
-DIAGNOSTICS_PERIOD_S = 1.0
+WARN_PERIOD_S = 60.0        # a warning's cause is logged at most once per minute; counts are in /diagnostics
+DIAGNOSTICS_PERIOD_S = 1.0  # on the steady clock: diagnostics and expiry also run under sim time without /clock
+STOP_TIMEOUT_S = 1.5        # the worker stops between vehicles; the node exits within 2 s of SIGINT/SIGTERM
+LARGE_CLOUD_BYTES = 1 << 20  # clouds above this get lost over Fast DDS's default transports
+SIM_CLOCK_GRACE_S = 3.0
+# Skips of normal operation (distant vehicles, a slow model): logged once, then only counted.
+ROUTINE_CAUSES = frozenset({"too_few_points", "superseded", "no_subscribers"})
 # Counters always present in the diagnostics, so a consumer can rely on the keys.
 COUNTER_KEYS = (
     "clouds_received", "boxes_received", "frames_published", "vehicles_completed", "ignored_labels",
@@ -70,13 +87,15 @@ class CompleterNode(Node):
 
     def __init__(self, completer: VehicleCompleter | None = None, **node_kwargs: Any) -> None:
         super().__init__(NODE_NAME, **node_kwargs)
+        self._warned: dict[str, tuple[float, int]] = {}
+        for problem in unknown_parameters(self._parameter_overrides):
+            self.get_logger().warning(problem)
         declare_parameters(self)
         self.params: CompleterParams = read_parameters(self)
         p = self.params
         self.completer = completer or VehicleCompleter.from_checkpoint(
-            p.model_path or None, device=p.device, num_threads=p.num_threads or None, labels=p.labels,
-            min_points=p.min_points or None, crop_margin=p.crop_margin if p.crop_margin >= 0 else None,
-            include_input_points=p.include_input_points, limits=p.limits)
+            p.model_path or None, device=p.device, num_threads=p.num_threads or None, labels=p.labels)
+        self._checkpoint_preprocessing = self.completer.preprocessing
         check_model_sizes(p, self.completer.num_input, self.completer.num_output, p.model_path or "(shipped weights)")
         self.completer.warm_up()
         boxes_cls, self._to_boxes, boxes_type_name = resolve_boxes_type(p.boxes_type)
@@ -88,8 +107,10 @@ class CompleterNode(Node):
         self._last_report: dict[str, int] = {}
         self.sync: StampSync[tuple[Header, np.ndarray], BoxSet] = StampSync(
             int(p.sync_tolerance * 1e9), p.queue_size, max_wait_ns=int(p.sync_max_wait * 1e9))
+        self._apply(p)
         self._slot: LatestSlot[tuple[Pair, float]] = LatestSlot()
         self._stopping = threading.Event()
+        self._started = time.monotonic()
 
         self._output_pub = self.create_publisher(PointCloud2, p.output_topic, QoSProfile(depth=5))
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
@@ -98,12 +119,60 @@ class CompleterNode(Node):
         self._worker.start()
         self.create_subscription(PointCloud2, p.cloud_topic, self._on_cloud, qos_profile_sensor_data)
         self.create_subscription(boxes_cls, p.boxes_topic, self._on_boxes, QoSProfile(depth=max(10, p.queue_size)))
-        self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f"completer ready: {self.resolve_topic_name(p.cloud_topic)} (PointCloud2) + "
             f"{self.resolve_topic_name(p.boxes_topic)} ({boxes_type_name}) -> "
             f"{self.resolve_topic_name(p.output_topic)}; model {p.model_path or '(shipped weights)'} on {p.device}, "
             f"{self.completer.num_input} -> {self.completer.num_output} points, labels {list(p.labels)}")
+
+    # -- parameters ------------------------------------------------------------------------------------
+
+    def _apply(self, p: CompleterParams) -> None:
+        """Put the live parameters into effect (at start and on `ros2 param set`)."""
+        overrides = {k: v for k, v in (("min_points", p.min_points or None),
+                                       ("crop_margin", p.crop_margin if p.crop_margin >= 0 else None)) if v is not None}
+        self.completer.preprocessing = replace(self._checkpoint_preprocessing, **overrides)
+        self.completer.labels = frozenset(p.labels)
+        self.completer.include_input_points = p.include_input_points
+        self.completer.limits = p.limits
+        self.sync.tolerance_ns = int(p.sync_tolerance * 1e9)
+        self.sync.max_wait_ns = int(p.sync_max_wait * 1e9)
+        self.params = p
+
+    def _on_set_parameters(self, changes: Sequence[Any]) -> SetParametersResult:
+        """Validate the new values together with the others; apply them, or refuse with the reason."""
+        values = {name: self.get_parameter(name).value for name in PARAMETERS}
+        values.update({c.name: c.value for c in changes if c.name in PARAMETERS})
+        unknown = [c.name for c in changes if c.name not in LIVE_PARAMETERS and c.name in PARAMETERS]
+        if unknown:    # read-only parameters are refused by rclpy before this callback; kept as a guard
+            return SetParametersResult(successful=False, reason=f"{unknown} cannot change while the node runs")
+        try:
+            params = validate(values)
+        except ParameterError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self._apply(params)
+        self.get_logger().info("parameters changed: " + ", ".join(f"{c.name}={c.value!r}" for c in changes))
+        return SetParametersResult(successful=True)
+
+    def _warn(self, cause: str, text: str) -> None:
+        """Log `text` the first time `cause` happens, then at most once per minute (routine causes: only
+        the first time); every occurrence is counted in /diagnostics anyway."""
+        now = time.monotonic()
+        last, missed = self._warned.get(cause, (-math.inf, 0))
+        if cause in ROUTINE_CAUSES and last > -math.inf:
+            return
+        if now - last < WARN_PERIOD_S:
+            self._warned[cause] = (last, missed + 1)
+            return
+        self._warned[cause] = (now, 0)
+        suffix = f" ({missed} more since the last such warning)" if missed else ""
+        if cause in ROUTINE_CAUSES:
+            self.get_logger().info(text + " (normal under load or for distant vehicles; counted in /diagnostics, "
+                                   "not logged again)")
+        else:
+            self.get_logger().warning(text + suffix)
 
     # -- subscription side (executor thread) ---------------------------------------------------------
 
@@ -114,19 +183,21 @@ class CompleterNode(Node):
     def _offer(self, pair: Pair | None) -> None:
         if pair is not None and self._slot.put((pair, time.monotonic())):
             self._count("drop_superseded")
-            self.get_logger().warning(
-                "completion slower than the input: dropped an older pending frame (newest wins)",
-                throttle_duration_sec=WARN_THROTTLE_S)
+            self._warn("superseded", "completion slower than the input: dropped an older pending frame (newest wins)")
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         self._count("clouds_received")
+        if len(msg.data) > LARGE_CLOUD_BYTES and not os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE"):
+            self._warn("large_cloud", f"received a {len(msg.data) / 2**20:.1f} MiB cloud: over Fast DDS's default "
+                       "transports many clouds this large are lost; give the publisher (and this node) "
+                       "FASTRTPS_DEFAULT_PROFILES_FILE=<share/gd_completion>/config/fastdds_large_messages.xml "
+                       "(the launch file sets it for the node)")
         try:  # decoding is one copy of x, y, z (~1 ms for 120k points): bad clouds never wait for boxes
             points = read_xyz(msg)
         except PointCloud2Error as exc:
             self._count("bad_cloud")
-            self.get_logger().warning(f"skipping malformed cloud on {self.params.cloud_topic} "
-                                      f"(stamp {stamp_to_ns(msg.header.stamp) * 1e-9:.3f}): {exc}",
-                                      throttle_duration_sec=WARN_THROTTLE_S)
+            self._warn("bad_cloud", f"skipping malformed cloud on {self.params.cloud_topic} "
+                                    f"(stamp {stamp_to_ns(msg.header.stamp) * 1e-9:.3f}): {exc}")
             return
         self._offer(self.sync.add_cloud(stamp_to_ns(msg.header.stamp), (msg.header, points), time.monotonic_ns()))
 
@@ -136,21 +207,24 @@ class CompleterNode(Node):
             boxes = self._to_boxes(msg, self.params.class_map)
         except (GDCompletionError, TypeError, ValueError) as exc:
             self._count("errors")
-            self.get_logger().warning(f"skipping unreadable boxes message on {self.params.boxes_topic}: {exc}",
-                                      throttle_duration_sec=WARN_THROTTLE_S)
+            self._warn("bad_boxes", f"skipping unreadable boxes message on {self.params.boxes_topic}: {exc}")
             return
         if boxes.stamp_ns is None:
             self._count("boxes_without_header")
-            self.get_logger().warning(
-                f"skipping an empty MarkerArray on {self.params.boxes_topic}: it has no header to pair by stamp "
-                "(publish a DELETEALL marker with the frame's header for frames without vehicles)",
-                throttle_duration_sec=WARN_THROTTLE_S)
+            self._warn("boxes_without_header",
+                       f"skipping an empty MarkerArray on {self.params.boxes_topic}: it has no header to pair by "
+                       "stamp (publish a DELETEALL marker with the frame's header for frames without vehicles)")
             return
         self._offer(self.sync.add_boxes(boxes.stamp_ns, boxes, time.monotonic_ns()))
 
     def _on_timer(self) -> None:
+        """Steady-clock housekeeping: expiry, diagnostics, and one warning for sim time without /clock."""
         self.sync.expire(time.monotonic_ns())
         self._publish_diagnostics()
+        if (self.get_parameter("use_sim_time").value and self.get_clock().now().nanoseconds == 0
+                and time.monotonic() - self._started > SIM_CLOCK_GRACE_S):
+            self._warn("no_clock", "use_sim_time is true but nothing publishes /clock: ROS time stands at 0 "
+                                   "(pairing, expiry and diagnostics run on the steady clock and go on)")
 
     # -- worker thread ---------------------------------------------------------------------------------
 
@@ -165,12 +239,13 @@ class CompleterNode(Node):
                 if self._stopping.is_set():
                     return
                 self._count("errors")
-                self.get_logger().error(f"frame skipped after an unexpected error: {exc!r}",
-                                        throttle_duration_sec=WARN_THROTTLE_S)
+                self._warn("error", f"frame skipped after an unexpected error: {exc!r}")
 
     def _complete(self, pair: Pair, ready_at: float) -> None:
         if self._output_pub.get_subscription_count() == 0:   # lazy: no model work that nobody receives
             self._count("frames_without_subscribers")
+            self._warn("no_subscribers", f"nobody subscribes to {self.params.output_topic}: frames are paired "
+                                         "and dropped without model work")
             return
         started = time.perf_counter()
         header, points = pair.cloud
@@ -178,16 +253,15 @@ class CompleterNode(Node):
         boxes, wrong_frame = pair.boxes.split_by_frame(frame_id)
         if wrong_frame:
             self._count("boxes_wrong_frame", wrong_frame)
-            self.get_logger().warning(
-                f"skipping {wrong_frame} box(es) not in the cloud's frame '{frame_id}' (no tf transform here)",
-                throttle_duration_sec=WARN_THROTTLE_S)
+            self._warn("wrong_frame", f"skipping {wrong_frame} box(es) not in the cloud's frame '{frame_id}' "
+                                      "(no tf transform here)")
         completion = self.completer.complete_frame(points, boxes, cancel=self._stopping)
         stats = completion.stats
         if stats.nonfinite_points:
-            self.get_logger().warning(f"dropped {stats.nonfinite_points} non-finite point(s) of a cloud on "
-                                      f"{self.params.cloud_topic}", throttle_duration_sec=WARN_THROTTLE_S)
-        if stats.skipped:
-            self.get_logger().warning(f"skipped vehicles: {dict(stats.skipped)}", throttle_duration_sec=WARN_THROTTLE_S)
+            self._warn("nonfinite", f"dropped {stats.nonfinite_points} non-finite point(s) of a cloud on "
+                                    f"{self.params.cloud_topic}")
+        for reason, n in stats.skipped.items():
+            self._warn(reason, f"skipped vehicles: {n} {reason}")
         msg = structured_to_msg(completion_to_structured(completion), header)
         if self._stopping.is_set():
             return
@@ -240,26 +314,54 @@ class CompleterNode(Node):
         self._diag_pub.publish(array)
 
     def close(self) -> None:
-        """Stop the worker thread and destroy the node."""
+        """Stop the worker (it stops between vehicles), the vehicle threads, and destroy the node."""
         self._stopping.set()
         self._slot.close()
-        self._worker.join(timeout=10.0)
+        self._worker.join(timeout=STOP_TIMEOUT_S)
         self.completer.close()
         self.destroy_node()
 
 
+def print_help() -> None:
+    """`completer --help`: usage and every parameter with its default and whether it can change live."""
+    print(f"usage: completer [--help] [--ros-args -p NAME:=VALUE ... --params-file FILE]\n\n"
+          f"ROS 2 node `{NODE_NAME}` of gd_completion: completes the vehicles of PointCloud2 frames from their 3D "
+          "boxes and publishes dense vehicle clouds.\n\nparameters (live: applied on `ros2 param set`; the others "
+          "are read-only):")
+    for name, (default, description, _) in PARAMETERS.items():
+        print(f"  {name} (default {default!r}{', live' if name in LIVE_PARAMETERS else ''})\n      {description}")
+
+
+def _wants_help(argv: Sequence[str]) -> bool:
+    user = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    return any(a in ("-h", "--help") for a in user)
+
+
 def main(args: list[str] | None = None) -> int:
-    """`ros2 run gd_completion completer`: spin until SIGINT/SIGTERM; exit 0 then, 2 on a configuration error."""
-    rclpy.init(args=args)
+    """`ros2 run gd_completion completer`: spin until SIGINT/SIGTERM, then exit 0 within 2 s (a second signal,
+    as `ros2 launch` sends, changes nothing); exit 2 with one line on a configuration error."""
+    argv = list(sys.argv[1:] if args is None else args)
+    if _wants_help(argv):
+        print_help()
+        return 0
+    stop = threading.Event()
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # noqa: BLE001 - rcl's RCLError: unreadable params file, bad --ros-args
+        print(f"[{NODE_NAME}] error: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     node: CompleterNode | None = None
     code = 0
     try:
         node = CompleterNode()
+        for problem in params_file_problems(argv, (node.get_name(), node.get_fully_qualified_name().lstrip("/"))):
+            node.get_logger().warning(problem)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except GDCompletionError as exc:
         print(f"[{NODE_NAME}] error: {exc}", file=sys.stderr)
         code = 2

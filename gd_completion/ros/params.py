@@ -1,7 +1,10 @@
 """Parameters of the completer node: declarations with descriptions and ranges, read and validated once."""
 from __future__ import annotations
 
+import difflib
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -112,10 +115,56 @@ LIMIT_PARAMETERS = {"max_boxes": "max_boxes", "max_box_length": "max_box_length"
                     "max_output_points": "max_output_points", "time_budget": "time_budget_s"}
 
 
+# Applied while the node runs (`ros2 param set`); every other parameter is declared read-only, so a set
+# is refused with rclpy's reason instead of reporting success and changing nothing.
+LIVE_PARAMETERS = frozenset({"min_points", "crop_margin", "labels", "class_map", "sync_tolerance", "sync_max_wait",
+                             "include_input_points", *LIMIT_PARAMETERS})
+# Parameters every rclpy node may be given, besides the completer's own.
+STANDARD_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service", "start_parameter_services"})
+
+
 def declare_parameters(node: Any) -> None:
-    """Declare every completer parameter on `node` with its description and range."""
+    """Declare every completer parameter on `node` with its description, range and read-only flag;
+    ParameterError (one line) for an override of the wrong type or outside its range."""
+    from rclpy.exceptions import ParameterException
+
     for name, (default, description, ranges) in PARAMETERS.items():
-        node.declare_parameter(name, default, ParameterDescriptor(name=name, description=description, **ranges))
+        descriptor = ParameterDescriptor(name=name, description=description, read_only=name not in LIVE_PARAMETERS,
+                                         **ranges)
+        try:
+            node.declare_parameter(name, default, descriptor)
+        except ParameterException as exc:
+            raise ParameterError(f"parameter {name}: {str(exc).splitlines()[0]}") from exc
+
+
+def unknown_parameters(names: Iterable[str]) -> list[str]:
+    """Warnings for parameter names the completer does not have (a typo is otherwise silently ignored)."""
+    known = set(PARAMETERS) | STANDARD_PARAMETERS
+    out = []
+    for name in sorted(set(names) - known):
+        if name.startswith("qos_overrides."):
+            continue
+        close = difflib.get_close_matches(name, known, n=1)
+        out.append(f"unknown parameter '{name}' is ignored" + (f" (did you mean '{close[0]}'?)" if close else ""))
+    return out
+
+
+def params_file_problems(args: Sequence[str], node_names: Sequence[str]) -> list[str]:
+    """Warnings for --params-file files (in ROS arguments `args`) with no section for this node."""
+    import yaml
+
+    problems = []
+    files = [args[i + 1] for i, a in enumerate(args[:-1]) if a == "--params-file"]
+    for path in files:
+        try:
+            sections = yaml.safe_load(Path(path).read_text()) or {}
+        except (OSError, yaml.YAMLError):
+            continue   # rcl has already refused an unreadable file
+        keys = [str(k) for k in sections] if isinstance(sections, dict) else []
+        if not any(k in ("/**", "**") or k.lstrip("/") in node_names for k in keys):
+            problems.append(f"params file {path} has no section for this node ({', '.join(node_names)}); its "
+                            f"sections {keys} are not applied")
+    return problems
 
 
 def read_parameters(node: Any) -> CompleterParams:
