@@ -184,6 +184,7 @@ class Client:
 
     def close(self) -> None:
         self.executor.shutdown()
+        self._thread.join(timeout=5.0)
         self.node.destroy_node()
 
 

@@ -350,8 +350,12 @@ def main(args: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - rcl's RCLError: unreadable params file, bad --ros-args
         print(f"[{NODE_NAME}] error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
+    def request_stop(*_: Any) -> None:
+        stop.set()
+        for sig in (signal.SIGINT, signal.SIGTERM):   # further signals ignored, through interpreter exit too
+            signal.signal(sig, signal.SIG_IGN)        # (Python restores SIG_DFL for handled signals at exit)
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, request_stop)
     node: CompleterNode | None = None
     code = 0
     try:
