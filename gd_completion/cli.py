@@ -31,15 +31,18 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run one subcommand; bad input gives a one-line error and exit code 2."""
+    """Run one subcommand; bad input and unwritable outputs give a one-line error and exit code 2."""
     argv = sys.argv[1:] if argv is None else argv
     command = next((arg for arg in argv if not arg.startswith("-")), None)  # gd-completion has no option values
     args = build_parser(command).parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except GDCompletionError as error:
-        print(f"gd-completion {args.command}: error: {error}", file=sys.stderr)
-        return 2
+        message = str(error)
+    except OSError as error:  # a file the system refused outside the writers, which raise OutputError for theirs
+        message = f"{error.filename}: {error.strerror}" if error.filename and error.strerror else str(error)
+    print(f"gd-completion {args.command}: error: {message}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

@@ -25,9 +25,12 @@ from gd_completion.geometry import Box3D
 from gd_completion.pointcloud2 import read_points, write_points
 from gd_completion.stamp_sync import SYNC_TOLERANCE_S, stamp_to_ns
 from gd_completion.tools.complete import complete_bag
+from gd_completion.tools.play import CLOCK_TOPIC
 from gd_completion.tools.render import read_frame
 
 pytestmark = pytest.mark.integration  # processes, ROS nodes, builds or bags: the slow part of the suite
+
+CLOCK = "rosgraph_msgs/msg/Clock"
 
 KITTI = "kitti-object-sample/training"
 REPO = Path(__file__).resolve().parents[1]
@@ -162,13 +165,21 @@ def test_complete_workers_arguments(kitti_bag: Path, tmp_path: Path, capsys: pyt
     assert list(tmp_path.iterdir()) == []
 
 
-def _write_bag(path: Path, with_boxes: bool, boxes_frame: str = "lidar") -> None:
+UNKNOWN_TYPE = "acme_msgs/msg/Thing"  # made up: in no typestore, and its bag stores no definition
+
+
+def _write_bag(path: Path, with_boxes: bool, boxes_frame: str = "lidar", unknown_type: bool = False) -> None:
     cloud = np.zeros(10, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     with atomic_bag_writer(path) as writer:
         pts = add_connection(writer, "/points", POINTCLOUD2)
         other = add_connection(writer, "/other", "pandar_msgs/msg/PandarScan")
         boxes = add_connection(writer, "/boxes", MARKER_ARRAY) if with_boxes else None
+        # rosbags writes raw bytes on any type given a definition text (empty here) and a hash
+        thing = writer.add_connection("/acme/thing", UNKNOWN_TYPE, msgdef="", rihs01="RIHS01_" + "0" * 64) \
+            if unknown_type else None
         for k in range(2):
+            if thing is not None:
+                writer.write(thing, k, b"\x00\x01\x00\x00" + bytes([k]) * 8)  # CDR header and a payload
             writer.write(pts, k, serialize(pointcloud2_msg(write_points(cloud), "lidar", k), POINTCLOUD2))
             writer.write(other, k, serialize(message_class("pandar_msgs/msg/PandarScan")(
                 header=header("lidar", k), packets=[]), "pandar_msgs/msg/PandarScan"))
@@ -221,6 +232,33 @@ def test_marker_boxes_and_unknown_types_are_copied(model_path: str, tmp_path: Pa
     summary = complete_bag(src, tmp_path / "out", model=model_path, progress=False)
     assert summary.frames == 2 and dict(summary.skipped) == {"too_few_points": 2}
     assert _raw(tmp_path / "out")[1]["/other"] == _raw(src)[1]["/other"]
+
+
+def test_unknown_type_without_definition(model_path: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """`complete` cannot copy a topic of an unknown type without a stored definition: it refuses the bag and names
+    --skip-unknown-types, which leaves the topic out with a warning and says so in the summary. `render` reads
+    only the clouds and boxes and renders the bag as it is."""
+    src = tmp_path / "in"
+    _write_bag(src, with_boxes=True, unknown_type=True)
+    in_conns, in_msgs = _raw(src)
+    assert in_conns["/acme/thing"][:3] == (UNKNOWN_TYPE, "", "RIHS01_" + "0" * 64)  # no definition stored
+    out = tmp_path / "out"
+    assert main(["complete", str(src), str(out), "--model", model_path, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {src}: topic /acme/thing has unknown type {UNKNOWN_TYPE} and no stored definition" in err
+    assert "--skip-unknown-types" in err and not out.exists()
+
+    assert main(["complete", str(src), str(out), "--model", model_path, "--quiet", "--skip-unknown-types"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [f"gd-completion complete: warning: {src}: skipping /acme/thing: type "
+                                         f"{UNKNOWN_TYPE} is unknown and the bag stores no definition; not copied"]
+    assert "; 6 input messages copied; 2 messages of /acme/thing not copied (unknown type);" in captured.out
+    out_conns, out_msgs = _raw(out)
+    assert set(out_conns) == {"/points", "/other", "/boxes", "/completed"}
+    assert all(out_msgs[topic] == in_msgs[topic] for topic in ("/points", "/other", "/boxes"))
+
+    assert main(["render", str(src), str(tmp_path / "frame.png")]) == 0
+    assert (tmp_path / "frame.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_boxes_in_another_frame_are_skipped_and_counted(model_path: str, tmp_path: Path) -> None:
@@ -331,8 +369,15 @@ def test_render_completed_bag(completed_bag: Path, tmp_path: Path) -> None:
 
 
 def _play_and_listen(bag: Path, subscriptions: dict[str, type], monkeypatch: pytest.MonkeyPatch,
-                     env_extra: dict[str, str] | None = None) -> tuple[dict[str, list[bytes]], str, str]:
-    """Run `play` in a subprocess and collect the raw messages a live rclpy subscriber receives."""
+                     env_extra: dict[str, str | None] | None = None,
+                     args: tuple[str, ...] = ("--delay", "0.5", "--wait-for-subscribers", "30"),
+                     late: bool = False) -> tuple[dict[str, list[bytes]], str, str]:
+    """Run `play` in a subprocess and collect the raw messages a live rclpy subscriber receives.
+
+    `env_extra` changes the player's environment (None removes a variable). Every topic of `subscriptions` but
+    /clock is played. `late`: those topics are subscribed only 2 s after the
+    player's publishers appear in the graph (the player is up and waiting); /clock is subscribed from the start.
+    """
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -340,24 +385,35 @@ def _play_and_listen(bag: Path, subscriptions: dict[str, type], monkeypatch: pyt
     domain = str(ros_test_domain_id())
     monkeypatch.setenv("ROS_DOMAIN_ID", domain)
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env = {**os.environ, **(env_extra or {})}
+    env = {k: v for k, v in {**os.environ, **(env_extra or {})}.items() if v is not None}
+    played = [topic for topic in subscriptions if topic != CLOCK_TOPIC]
     context = rclpy.Context()
     rclpy.init(context=context)
     try:
         node = rclpy.create_node("gd_completion_play_test", context=context)
         got: dict[str, list[bytes]] = {topic: [] for topic in subscriptions}
-        qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-        for topic, cls in subscriptions.items():
-            node.create_subscription(cls, topic, got[topic].append, qos, raw=True)
+        qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+
+        def subscribe(topics: list[str]) -> None:
+            for topic in topics:
+                node.create_subscription(subscriptions[topic], topic, got[topic].append, qos, raw=True)
+
+        subscribe([topic for topic in subscriptions if not late or topic not in played])
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         player = subprocess.Popen(
-            [sys.executable, "-m", "gd_completion.tools.play", str(bag), "--rate", "2", "--delay", "0.5",
-             "--wait-for-subscribers", "30", "--topics", *subscriptions, *(["/kitti/detections"]
-                                                                        if "/kitti/detections" not in subscriptions
-                                                                        else [])],
+            [sys.executable, "-m", "gd_completion.tools.play", str(bag), "--rate", "2", *args, "--topics", *played,
+             *(["/kitti/detections"] if "/kitti/detections" not in played else [])],
             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         started = time.monotonic()
+        if late:
+            while node.count_publishers(played[0]) == 0 and player.poll() is None and time.monotonic() - started < 45:
+                executor.spin_once(timeout_sec=0.05)
+            seen = time.monotonic()
+            while time.monotonic() - seen < 2.0:  # longer than the --delay and the whole bag at --rate 2
+                executor.spin_once(timeout_sec=0.05)
+            assert node.count_publishers(played[0]) == 1 and player.poll() is None  # up, waiting for subscribers
+            subscribe(played)
         while player.poll() is None and time.monotonic() - started < 45:
             executor.spin_once(timeout_sec=0.05)
         for _ in range(20):
@@ -390,6 +446,30 @@ def test_play_feeds_live_subscriber(kitti_bag: Path, monkeypatch: pytest.MonkeyP
     _assert_same_messages(got, _raw(kitti_bag)[1])
     if "/kitti/detections" not in out:  # vision_msgs not importable in the player's environment
         assert "skipping /kitti/detections" in err
+
+
+def test_play_waits_for_late_subscribers_and_publishes_clock(kitti_bag: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The subscriptions appear only after the player is up: it waits for them (--wait-subscribers) and delivers
+    every message from the first on. With --clock, /clock carries the bag time, from the start of the bag to its
+    last message, never backwards, and reaches each message's bag time before that message is published. The
+    player's environment names no Fast DDS profile: it sets the large-message one itself (2 MB clouds)."""
+    pytest.importorskip("rclpy")
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import MarkerArray
+
+    got, out, _ = _play_and_listen(kitti_bag, {"/kitti/points": PointCloud2, "/kitti/markers": MarkerArray,
+                                               CLOCK_TOPIC: Clock}, monkeypatch,
+                                   env_extra={"FASTRTPS_DEFAULT_PROFILES_FILE": None},
+                                   args=("--clock", "100", "--wait-subscribers", "60"), late=True)
+    assert "/kitti/points 6" in out and "/kitti/markers 6" in out
+    recorded = _raw(kitti_bag)[1]
+    _assert_same_messages({topic: got[topic] for topic in ("/kitti/points", "/kitti/markers")}, recorded)
+    clock = [stamp_to_ns(deserialize(bytes(raw), CLOCK).clock) for raw in got[CLOCK_TOPIC]]
+    bag_times = sorted(stamp for topic in ("/kitti/points", "/kitti/markers") for stamp, _ in recorded[topic])
+    start = min(stamp for messages in recorded.values() for stamp, _ in messages)
+    assert clock == sorted(clock) and clock[0] == start and clock[-1] == bag_times[-1] == 500_000_000
+    assert set(bag_times) <= set(clock)
 
 
 def test_play_detections_with_vision_msgs(kitti_bag: Path, monkeypatch: pytest.MonkeyPatch) -> None:

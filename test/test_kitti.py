@@ -252,3 +252,27 @@ def test_bad_input_exit_code_and_no_output(problem: str, shared_data: Path, tmp_
     assert needle in err and "error" in err
     assert not out.exists()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_empty_scan_and_missing_label_are_warned_and_counted(shared_data: Path, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture) -> None:
+    """A copy of the sample with 000002.bin emptied and 000004's label file deleted converts, with one warning
+    line per cause on stderr and the counts in the summary; those frames keep their stamps."""
+    root = tmp_path / "training"
+    shutil.copytree(shared_data / KITTI, root)
+    (root / "velodyne" / "000002.bin").write_bytes(b"")
+    (root / "label_2" / "000004.txt").unlink()
+    out = tmp_path / "bag"
+    assert main(["convert", "kitti", str(root), str(out), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [
+        f"gd-completion convert: warning: {root}: 1 scan with no points (000002)",
+        f"gd-completion convert: warning: {root}: 1 frame without a label file: converted without boxes (000004)"]
+    assert captured.out.strip().endswith("; 1 scan with no points; 1 frame without a label file")
+    topics = _read_bag(out)
+    clouds = [msg for _, msg in topics["/kitti/points"]]
+    assert [c.width for c in clouds][2] == 0 and all(c.width > 100_000 for k, c in enumerate(clouds) if k != 2)
+    boxes = [detections_to_boxes(msg).boxes for _, msg in topics["/kitti/detections"]]
+    expected = [len(kitti.read_labels(root / "label_2" / f"00000{k}.txt")) if k != 4 else 0 for k in range(6)]
+    assert [len(b) for b in boxes] == expected and expected[2] > 0  # the empty scan keeps its labels
+    assert [stamp for stamp, _ in topics["/kitti/points"]] == [k * kitti.OBJECT_PERIOD_NS for k in range(6)]

@@ -35,3 +35,4 @@ class DatasetFrame:
     track_ids: list[str]
     calib: Any = None
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    labelled: bool = True  # False: the frame had no label file, so its boxes are unknown (converted without any)

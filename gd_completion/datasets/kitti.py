@@ -194,12 +194,12 @@ def iter_object_frames(root: str | Path, *, limit: int | None = None, start_ns: 
     for k, scan in enumerate(scans[:limit]):
         calib = read_calib(root / "calib" / f"{scan.stem}.txt")
         label_path = root / "label_2" / f"{scan.stem}.txt"
-        labels = read_labels(label_path) if label_path.exists() else []
-        boxes, names = labels_to_boxes(labels, calib)
+        labelled = label_path.exists()
+        boxes, names = labels_to_boxes(read_labels(label_path) if labelled else [], calib)
         cloud = read_velodyne(scan)
         yield DatasetFrame(name=scan.stem, stamp_ns=start_ns + k * OBJECT_PERIOD_NS, frame_id=LIDAR_FRAME,
                            xyz=cloud[:, :3], intensity=cloud[:, 3], boxes=boxes, source_labels=names,
-                           track_ids=[str(b.instance_id) for b in boxes], calib=calib)
+                           track_ids=[str(b.instance_id) for b in boxes], calib=calib, labelled=labelled)
 
 
 def read_timestamps(path: str | Path) -> np.ndarray:
@@ -269,7 +269,8 @@ def iter_raw_frames(drive: str | Path, *, limit: int | None = None) -> Iterator[
         boxes = tracks.get(index, [])
         yield DatasetFrame(name=scan.stem, stamp_ns=int(stamps[index]), frame_id=LIDAR_FRAME, xyz=cloud[:, :3],
                            intensity=cloud[:, 3], boxes=boxes, source_labels=[b.label for b in boxes],
-                           track_ids=[str(b.instance_id) for b in boxes], calib=calib)
+                           track_ids=[str(b.instance_id) for b in boxes], calib=calib,
+                           labelled=tracklet_path.exists())
 
 
 def iter_tracking_frames(root: str | Path, sequence: str, *, limit: int | None = None) -> Iterator[DatasetFrame]:
@@ -287,7 +288,8 @@ def iter_tracking_frames(root: str | Path, sequence: str, *, limit: int | None =
         cloud = read_velodyne(scan)
         yield DatasetFrame(name=scan.stem, stamp_ns=index * OBJECT_PERIOD_NS, frame_id=LIDAR_FRAME,
                            xyz=cloud[:, :3], intensity=cloud[:, 3], boxes=boxes, source_labels=names,
-                           track_ids=[str(b.instance_id) for b in boxes], calib=calib)
+                           track_ids=[str(b.instance_id) for b in boxes], calib=calib,
+                           labelled=label_path.exists())
 
 
 def detect_layout(path: str | Path) -> str:

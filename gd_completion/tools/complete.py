@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -18,7 +19,7 @@ from gd_completion.bags.provenance import completer_parameters, provenance, set_
 from gd_completion.bags.reader import iter_raw, open_bag
 from gd_completion.bags.topics import DEFAULT_CLOUD_TOPICS, default_output_topic, pick_topics
 from gd_completion.bags.typestore import POINTCLOUD2, serialize
-from gd_completion.bags.writer import STORAGES, add_connection, atomic_bag_writer, copy_connection
+from gd_completion.bags.writer import STORAGES, add_connection, atomic_bag_writer, copy_connection, has_definition
 from gd_completion.errors import BagError, GDCompletionError
 from gd_completion.frame_pool import FramePool, InOrder
 from gd_completion.pointcloud2 import read_xyz, write_points
@@ -41,6 +42,7 @@ class CompletionSummary:
     sync: SyncCounters = field(default_factory=SyncCounters)
     seconds: float = 0.0
     output_topic: str = ""
+    not_copied: dict[str, int] = field(default_factory=dict)  # topic -> messages left out (--skip-unknown-types)
 
     @property
     def frames_without_boxes(self) -> int:
@@ -61,9 +63,11 @@ class CompletionSummary:
         """Human-readable summary: the frames, then every non-zero counter."""
         rate = self.frames / self.seconds if self.seconds > 0 else 0.0
         counts = ", ".join(f"{k} {v}" for k, v in self.counters().items() if v and k != "vehicles_completed")
+        left_out = "".join(f"; {n} message{'s' if n != 1 else ''} of {topic} not copied (unknown type)"
+                           for topic, n in self.not_copied.items())
         return (f"{self.frames} frames ({rate:.1f} frames/s, {self.seconds:.1f} s), "
                 f"{self.vehicles_completed} vehicles completed, {self.frames_without_boxes} frames without boxes; "
-                f"{counts or 'no other counts'}; {self.copied_messages} input messages copied; "
+                f"{counts or 'no other counts'}; {self.copied_messages} input messages copied{left_out}; "
                 f"completions on {self.output_topic}")
 
     def add(self, stats: Any) -> None:
@@ -79,7 +83,7 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                  boxes_topic: str | None = None, output_topic: str | None = None, model: str | None = None,
                  storage: str = "mcap", completer: Any = None, overwrite: bool = False,
                  progress: bool = True, workers: int = 1, sync_tolerance: float = SYNC_TOLERANCE_S,
-                 **completer_options: Any) -> CompletionSummary:
+                 skip_unknown_types: bool = False, **completer_options: Any) -> CompletionSummary:
     """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message.
 
     Clouds and boxes are paired as the node pairs them (stamps within `sync_tolerance` seconds); a cloud the
@@ -88,6 +92,8 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
     `workers` > 1 completes frames in that many spawned processes; the output bag is the same as with
     `workers=1`, message for message and in the same write order. An injected `completer` works only with
     `workers=1`. The bag's metadata records the package version, the model's SHA-256 and the parameters.
+    A topic of a type with no stored definition and unknown here cannot be copied: BagError, unless
+    `skip_unknown_types`, which leaves it out with a warning on stderr (counted in `summary.not_copied`).
     """
     from gd_completion.model.checkpoint import DEFAULT_WEIGHTS
     from gd_completion.pipeline import completion_to_structured
@@ -101,6 +107,11 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
         if output_topic in {c.topic for c in reader.connections}:
             raise BagError(f"{src}: output topic {output_topic} exists in the input bag; choose --output-topic")
         pairing = BagPairing(cloud_topic, boxes_topic, boxes_type, tolerance_s=sync_tolerance, source=str(src))
+        copied = [c for c in reader.connections if has_definition(c) or not skip_unknown_types]
+        for conn in (c for c in reader.connections if c not in copied):
+            print(f"gd-completion complete: warning: {src}: skipping {conn.topic}: type {conn.msgtype} is unknown and "
+                  "the bag stores no definition; not copied", file=sys.stderr)
+            summary.not_copied[conn.topic] = summary.not_copied.get(conn.topic, 0) + conn.msgcount
         total = sum(c.msgcount for c in reader.connections if c.topic == cloud_topic)
         queue: InOrder[Any] = InOrder(max_in_flight=2 * workers)  # memory stays flat on long bags
         waiting = {}  # cloud index -> its slot in the queue, until its pairing is decided
@@ -108,7 +119,7 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
             with (FramePool(workers, model, completer_options, completer) as pool,
                   atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer,
                   progress_bar("complete", "frames", total=total, quiet=not progress) as bar):
-                conns = {conn.id: copy_connection(writer, conn, src) for conn in reader.connections}
+                conns = {conn.id: copy_connection(writer, conn, src) for conn in copied}
                 out_conn = add_connection(writer, output_topic, POINTCLOUD2)
 
                 def submit(decided: list[tuple[RecordedCloud, Any]]) -> None:
@@ -131,7 +142,7 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                             writer.write(*item)
                             summary.copied_messages += 1
 
-                for conn, timestamp, raw in iter_raw(reader, reader.connections):
+                for conn, timestamp, raw in iter_raw(reader, copied):
                     queue.put((conns[conn.id], timestamp, raw))
                     cloud, decided = pairing.feed(conn.topic, timestamp, raw)
                     if cloud is not None:
@@ -182,7 +193,8 @@ def _run(args: argparse.Namespace) -> int:
     summary = complete_bag(args.input, args.output, cloud_topic=args.cloud_topic, boxes_topic=args.boxes_topic,
                            output_topic=args.output_topic, model=args.model, storage=args.storage,
                            overwrite=args.overwrite, progress=not args.quiet, workers=workers,
-                           sync_tolerance=args.sync_tolerance, **options)
+                           sync_tolerance=args.sync_tolerance, skip_unknown_types=args.skip_unknown_types,
+                           **options)
     print(f"wrote {args.output}: {summary.text()}")
     return 0
 
@@ -219,5 +231,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="skip vehicles with fewer measured points (default: the checkpoint's, 20)")
     parser.add_argument("--labels", default=None, help="comma-separated labels to complete (default car,van,truck)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+    parser.add_argument("--skip-unknown-types", action="store_true",
+                        help="leave out (with a warning) topics whose type is unknown and has no definition stored "
+                             "in the bag; without it such a bag is refused, as it cannot be copied whole")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=_run)

@@ -22,6 +22,33 @@ KITTI_TOPICS = ("/kitti/points", "/kitti/detections", "/kitti/markers")
 TF_STATIC = "/tf_static"
 
 
+class ConversionCounts(dict[str, int]):
+    """Messages written per topic, and the frames whose source was lacking: `empty_scans` (a scan with no points)
+    and `unlabelled_frames` (no label file: converted without boxes), by frame name."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.empty_scans: list[str] = []
+        self.unlabelled_frames: list[str] = []
+
+    def _lacking(self) -> list[tuple[str, str, list[str]]]:
+        """(count and kind, consequence, frame names) per kind of lacking frame that occurred."""
+        kinds = ((self.empty_scans, "scan", "with no points", ""),
+                 (self.unlabelled_frames, "frame", "without a label file", ": converted without boxes"))
+        return [(f"{len(names)} {noun}{'s' if len(names) > 1 else ''} {what}", consequence, names)
+                for names, noun, what, consequence in kinds if names]
+
+    def problems(self) -> list[str]:
+        """One warning line per kind of lacking frame: how many, the consequence, the first frames' names."""
+        return [f"{count}{consequence} ({', '.join(names[:5])}{', ...' if len(names) > 5 else ''})"
+                for count, consequence, names in self._lacking()]
+
+    def text(self) -> str:
+        """Messages per topic, then how many frames lacked points or labels."""
+        lacking = "; ".join(count for count, _, _ in self._lacking())
+        return ", ".join(f"{t} {n}" for t, n in self.items()) + (f"; {lacking}" if lacking else "")
+
+
 def kitti_cloud(frame: DatasetFrame) -> np.ndarray:
     """x y z intensity float32 structured array (the KITTI velodyne layout)."""
     return xyz_array_to_structured(frame.xyz, intensity=np.asarray(frame.intensity, np.float32))
@@ -30,14 +57,14 @@ def kitti_cloud(frame: DatasetFrame) -> np.ndarray:
 def write_bag(out: Path, storage: str, clouds: Sequence[tuple[str, str]], boxes_topics: tuple[str, str] | None,
               frames: Iterable[tuple[str, DatasetFrame, np.ndarray]],
               tf_static: Sequence[tuple[str, str, np.ndarray]] = (), overwrite: bool = False,
-              quiet: bool = False, total: int | None = None) -> dict[str, int]:
+              quiet: bool = False, total: int | None = None) -> ConversionCounts:
     """Write frames to a new bag atomically.
 
     `clouds`: (topic, frame key) pairs; `frames` yields (cloud topic, frame, structured cloud); boxes of the
     first cloud topic go to `boxes_topics` (Detection3DArray topic, MarkerArray topic). `total`: frames
-    expected, for the progress bar. Returns message counts.
+    expected, for the progress bar. Returns message counts and the frames without points or labels.
     """
-    counts: dict[str, int] = {}
+    counts = ConversionCounts()
     with (atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer,
           progress_bar(out.name, "frames", total=total, quiet=quiet) as bar):
         conns = {topic: add_connection(writer, topic, POINTCLOUD2) for topic, _ in clouds}
@@ -57,8 +84,12 @@ def write_bag(out: Path, storage: str, clouds: Sequence[tuple[str, str]], boxes_
             msg = pointcloud2_msg(write_points(cloud), frame.frame_id, ns)
             writer.write(conns[topic], ns, serialize(msg, POINTCLOUD2))
             counts[topic] = counts.get(topic, 0) + 1
+            if not cloud.size:
+                counts.empty_scans.append(frame.name)
             if topic == box_topic_source:
                 bar.update(1)
+                if not frame.labelled:
+                    counts.unlabelled_frames.append(frame.name)
                 if det_conn is not None:
                     det = detection3d_array_msg(frame.boxes, frame.frame_id, ns)
                     writer.write(det_conn, ns, serialize(det, DETECTION3D_ARRAY))
@@ -70,7 +101,7 @@ def write_bag(out: Path, storage: str, clouds: Sequence[tuple[str, str]], boxes_
 
 
 def convert_kitti(src: Path, out: Path, *, storage: str = "mcap", limit: int | None = None,
-                  sequence: str | None = None, overwrite: bool = False, quiet: bool = False) -> dict[str, int]:
+                  sequence: str | None = None, overwrite: bool = False, quiet: bool = False) -> ConversionCounts:
     """KITTI object split, tracking sequence or raw drive -> bag with /kitti/points, detections, markers."""
     from gd_completion.datasets import kitti
 
@@ -100,7 +131,7 @@ def convert_kitti(src: Path, out: Path, *, storage: str = "mcap", limit: int | N
 
 def convert_pandaset(src: Path, out: Path, *, storage: str = "mcap", limit: int | None = None,
                      sensors: Sequence[int] = (0, 1), start: int = 0, overwrite: bool = False,
-                     quiet: bool = False) -> dict[str, int]:
+                     quiet: bool = False) -> ConversionCounts:
     """PandaSet sequence folder (npz/json or devkit pickle layout) -> bag with one cloud topic per sensor and boxes.
 
     Frames from `start` on (at most `limit`); frames without a lidar file are skipped with a note.
@@ -128,19 +159,25 @@ def convert_pandaset(src: Path, out: Path, *, storage: str = "mcap", limit: int 
                      total=len(indices))
 
 
-def _run_kitti(args: argparse.Namespace) -> int:
-    counts = convert_kitti(Path(args.source), Path(args.output), storage=args.storage, limit=args.frames,
-                           sequence=args.sequence, overwrite=args.overwrite, quiet=args.quiet)
-    print(f"wrote {args.output}: " + ", ".join(f"{t} {n}" for t, n in counts.items()))
+def _report(args: argparse.Namespace, counts: ConversionCounts) -> int:
+    """One warning line on stderr per kind of lacking frame (also with --quiet), then the summary."""
+    for line in counts.problems():
+        print(f"gd-completion convert: warning: {args.source}: {line}", file=sys.stderr)
+    print(f"wrote {args.output}: {counts.text()}")
     return 0
+
+
+def _run_kitti(args: argparse.Namespace) -> int:
+    return _report(args, convert_kitti(Path(args.source), Path(args.output), storage=args.storage,
+                                       limit=args.frames, sequence=args.sequence, overwrite=args.overwrite,
+                                       quiet=args.quiet))
 
 
 def _run_pandaset(args: argparse.Namespace) -> int:
     sensors = [int(s) for s in args.sensors.split(",") if s.strip()]
-    counts = convert_pandaset(Path(args.source), Path(args.output), storage=args.storage, limit=args.frames,
-                              sensors=sensors, start=args.start, overwrite=args.overwrite, quiet=args.quiet)
-    print(f"wrote {args.output}: " + ", ".join(f"{t} {n}" for t, n in counts.items()))
-    return 0
+    return _report(args, convert_pandaset(Path(args.source), Path(args.output), storage=args.storage,
+                                          limit=args.frames, sensors=sensors, start=args.start,
+                                          overwrite=args.overwrite, quiet=args.quiet))
 
 
 def _common(parser: argparse.ArgumentParser) -> None:

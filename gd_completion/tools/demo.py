@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gd_completion.atomic import make_folder
 from gd_completion.bags.messages import detection3d_array_msg, marker_array_msg, pointcloud2_msg
 from gd_completion.bags.typestore import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2, serialize
 from gd_completion.bags.writer import add_connection, atomic_bag_writer
@@ -48,9 +49,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from gd_completion.pipeline import VehicleCompleter, completion_to_structured  # torch: only when running
     started = time.perf_counter()
+    make_folder(args.output)  # an unwritable output fails before any work
     frames = synthetic_drive(seed=args.seed, n_frames=args.frames, n_vehicles=args.vehicles)
     completer = VehicleCompleter.from_checkpoint(args.model or None)
-    args.output.mkdir(parents=True, exist_ok=True)
     bag_path = args.output / "demo_drive"
     best: dict[int, BestView] = {}
     completed = skipped = 0

@@ -5,6 +5,7 @@ import argparse
 import time
 from pathlib import Path
 
+from gd_completion.atomic import make_folder
 from gd_completion.errors import EvaluationError
 
 # torch, the model and the evaluation modules are imported in run_evaluation: `--help` stays light.
@@ -28,12 +29,12 @@ def run_evaluation(args: argparse.Namespace) -> int:
     from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, read_checkpoint_metadata
 
     start = time.perf_counter()
+    out = make_folder(args.output)  # an unwritable output fails before the evaluation, not after it
     synthetic_seed = EVAL_SEED if args.synthetic_seed is None else args.synthetic_seed
     if args.threads:
         torch.set_num_threads(args.threads)
     model_path = Path(args.model) if args.model else DEFAULT_WEIGHTS
     model, preprocessing = load_checkpoint(model_path)
-    out = Path(args.output)
     meta = {k: v for k, v in read_checkpoint_metadata(model_path).items()
             if k not in ("format", "format_version", "config") and isinstance(v, (str, int, float))}
     shown = model_path.resolve()

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from gd_completion.atomic import refuse_existing
 from gd_completion.bags.pairing import BagPairing, RecordedCloud
 from gd_completion.bags.reader import iter_raw, open_bag
 from gd_completion.bags.topics import default_output_topic, pick_topics
@@ -62,11 +63,15 @@ def read_frame(bag: str | Path, frame: int = 0, *, cloud_topic: str | None = Non
 def render_bag_frame(bag: str | Path, out: str | Path, *, frame: int = 0, cloud_topic: str | None = None,
                      boxes_topic: str | None = None, completed_topic: str | None = None,
                      vehicles_out: str | Path | None = None, max_vehicles: int = 12,
-                     sync_tolerance: float = SYNC_TOLERANCE_S) -> list[Path]:
+                     sync_tolerance: float = SYNC_TOLERANCE_S, overwrite: bool = False) -> list[Path]:
     """Render frame `frame` (index among the cloud messages) of `bag`; returns the written PNG paths.
 
-    The per-vehicle image shows the `max_vehicles` completed vehicles with the most measured points.
+    The per-vehicle image shows the `max_vehicles` completed vehicles with the most measured points. An existing
+    PNG is replaced only with `overwrite` (OutputError before any work otherwise).
     """
+    for path in (out, vehicles_out):
+        if path is not None:
+            refuse_existing(path, overwrite)
     cloud_topic, cloud, boxes, completed = read_frame(bag, frame, cloud_topic=cloud_topic, boxes_topic=boxes_topic,
                                                       completed_topic=completed_topic,
                                                       sync_tolerance=sync_tolerance)
@@ -96,7 +101,7 @@ def _run(args: argparse.Namespace) -> int:
     paths = render_bag_frame(args.bag, args.output, frame=args.frame, cloud_topic=args.cloud_topic,
                              boxes_topic=args.boxes_topic, completed_topic=args.completed_topic,
                              vehicles_out=args.vehicles, max_vehicles=args.max_vehicles,
-                             sync_tolerance=args.sync_tolerance)
+                             sync_tolerance=args.sync_tolerance, overwrite=args.overwrite)
     for path in paths:
         print(f"wrote {path}")
     return 0
@@ -106,7 +111,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `render`."""
     parser = subparsers.add_parser("render", help="bird's-eye PNG of one frame of a bag", description=__doc__)
     parser.add_argument("bag", help="rosbag2 (e.g. the output of `complete`)")
-    parser.add_argument("output", help="PNG path")
+    parser.add_argument("output", help="PNG path (written atomically; must not exist unless --overwrite)")
     parser.add_argument("--frame", type=int, default=0, help="index of the cloud message (default 0)")
     parser.add_argument("--cloud-topic", default=None)
     parser.add_argument("--boxes-topic", default=None)
@@ -115,4 +120,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--vehicles", default=None, help="also write per-vehicle side/top views to this PNG")
     parser.add_argument("--max-vehicles", type=int, default=12,
                         help="vehicles in the --vehicles image, most measured points first (default 12)")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing PNGs")
     parser.set_defaults(func=_run)

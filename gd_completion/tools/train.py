@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from gd_completion.atomic import atomic_path, make_folder
 from gd_completion.errors import DataFormatError
 from gd_completion.preprocess import Preprocessing
 from gd_completion.synth.dataset import DEFAULT_PATTERNS, GENERATOR_VERSION, build_dataset, load_dataset, save_dataset
@@ -144,8 +145,8 @@ def run(args: argparse.Namespace) -> int:
     from gd_completion.train import TrainSettings, train
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    args.output.mkdir(parents=True, exist_ok=True)
-    cache = args.cache or args.output
+    make_folder(args.output)  # an unwritable output fails before any work
+    cache = make_folder(args.cache or args.output)
     config = load_config(args)
     spec = DatasetSpec(args.samples, args.seed, config.num_input, config.num_output, args.meshes)
     train_data = cached_dataset(cache, "train", spec, args.workers)
@@ -156,11 +157,12 @@ def run(args: argparse.Namespace) -> int:
                              alpha=args.alpha, beta=args.beta,
                              batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=device,
                              time_budget_s=args.time_budget)
-    (args.output / "settings.json").write_text(json.dumps(
-        {"config": config.to_dict(), "settings": dataclasses.asdict(settings), "samples": args.samples,
-         "val_samples": args.val_samples, "meshes": str(args.meshes) if args.meshes else None,
-         "data": train_data["metadata"]["cache_key"],
-         "init_from": str(args.init_from) if args.init_from else None, "init_skip": args.init_skip}, indent=2))
+    with atomic_path(args.output / "settings.json") as tmp:
+        tmp.write_text(json.dumps(
+            {"config": config.to_dict(), "settings": dataclasses.asdict(settings), "samples": args.samples,
+             "val_samples": args.val_samples, "meshes": str(args.meshes) if args.meshes else None,
+             "data": train_data["metadata"]["cache_key"],
+             "init_from": str(args.init_from) if args.init_from else None, "init_skip": args.init_skip}, indent=2))
     result = train(config, (train_data["partial"], train_data["complete"]),
                    (val_data["partial"], val_data["complete"]), args.output, settings, resume=args.resume,
                    init_from=args.init_from, init_skip=tuple(args.init_skip), preprocessing=spec.preprocessing)
