@@ -67,9 +67,13 @@ def malformed_cloud(frame: KittiFrame, stamp: int, kind: int, rng: np.random.Gen
     return msg
 
 
-def hostile_boxes(frame: KittiFrame, rng: np.random.Generator) -> tuple[list[Box3D], str]:
+HOSTILE_KINDS = ("200 duplicates", "box in millimetres", "20 boxes of 10 km", "3000 car boxes", "NaN and zero boxes",
+                 "boxes in another frame", "int32-max id, huge yaw", "negative id")
+
+
+def hostile_boxes(frame: KittiFrame, rng: np.random.Generator, kind: int | None = None) -> tuple[list[Box3D], str]:
     car = frame.boxes[0]
-    kind = int(rng.integers(8))
+    kind = int(rng.integers(8)) if kind is None else kind
     if kind == 0:
         return [Box3D(car.center, car.size, car.yaw, "car", 1000 + i) for i in range(200)], "velodyne"
     if kind == 1:
@@ -103,6 +107,8 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=400.0, help="messages per second at most")
     ap.add_argument("--max-seconds", type=float, default=240.0, help="stop the flood after this long")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
+                    help="extra node parameter (repeatable), e.g. time_budget:=0.05")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     frame = small_frame()
@@ -111,7 +117,9 @@ def main() -> int:
     os.environ.update(env)
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=DOMAIN_ID)
-    node = NodeProcess(tmp, {"num_threads": "0", "boxes_type": "marker", "sync_max_wait": "0.5"}, env, "fuzz")
+    extra = dict(p.split(":=", 1) for p in args.param)
+    node = NodeProcess(tmp, {"num_threads": "0", "boxes_type": "marker", "sync_max_wait": "0.5", **extra}, env, "fuzz")
+    print(f"node parameters beyond the defaults: {extra or 'none'}")
     crashed = False
     try:
         node.wait_ready()
@@ -153,6 +161,18 @@ def main() -> int:
         flood_s = time.monotonic() - start
         crashed = crashed or node.proc.poll() is not None
         answered_after = sum(client.send_until_reply(frame, timeout=30.0) is not None for _ in range(5))
+        alone = {}                                 # each hostile kind again, alone: its own cost
+        for kind, name in enumerate(HOSTILE_KINDS):
+            boxes, frame_id = hostile_boxes(frame, rng, kind)
+            stamp = client.next_stamp()
+            seen = len(client.processing_times)
+            client.cloud_pub.publish(cloud_msg(frame.points, stamp))
+            client.boxes_pub.publish(client.boxes_msg(boxes, stamp, frame_id))
+            if client.wait_reply(stamp, timeout=30.0) is not None:
+                end = time.monotonic() + 2.0
+                while len(client.processing_times) == seen and time.monotonic() < end:
+                    time.sleep(0.02)
+                alone[name] = client.processing_times[-1]
         time.sleep(2.0)
         diag = client.settled_diagnostics() if not crashed else client.diag
         costs = np.array(client.processing_times[before:]) if len(client.processing_times) > before else np.zeros(1)
@@ -162,6 +182,11 @@ def main() -> int:
         print(f"processing time: normal frame {normal:.0f} ms; during the flood max {costs.max():.0f} ms "
               f"({costs.max() / normal:.1f}x, target <= 3x), p95 {np.percentile(costs, 95):.0f} ms, "
               f"{len(costs)} frames completed")
+        worst = max(alone, key=alone.get) if alone else None
+        print("each hostile message alone, processing time: " + ", ".join(f"{k} {v:.0f} ms" for k, v in alone.items()))
+        if worst:
+            print(f"costliest message alone: {worst}, {alone[worst]:.0f} ms = {alone[worst] / normal:.1f}x a normal "
+                  "frame (target <= 3x)")
         print(f"node peak RSS (VmHWM): {rss:.0f} MiB (target < 1024)")
         counters = {k: int(diag.get(k, 0) - base.get(k, 0)) for k in sorted(diag)
                     if (k.startswith(("skipped_", "drop_", "bad_", "boxes_", "errors", "nonfinite"))
