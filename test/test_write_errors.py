@@ -159,3 +159,21 @@ def test_render_refuses_to_overwrite(kitti_bag: Path, tmp_path: Path, capsys: py
     assert "output exists already" in _error_line(capsys, "render") and frame.read_bytes() == b"an older render"
     assert main(["render", str(kitti_bag), str(frame), "--frame", "1", "--overwrite"]) == 0
     assert frame.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and _files(tmp_path) == ["frame.png", "vehicles.png"]
+
+
+def test_checkpoint_save_on_a_full_disk_is_an_output_error(tmp_path, monkeypatch):
+    import torch
+    from test_model import TINY
+
+    from gd_completion.errors import OutputError
+    from gd_completion.model import GGDNet, save_checkpoint
+
+    def full_disk(obj, f, *args, **kwargs):
+        with open(f, "wb") as handle:
+            handle.write(b"PK")                # a partial write, then the zip writer's error
+        raise RuntimeError("PytorchStreamWriter failed writing file data/0: file write failed")
+    monkeypatch.setattr(torch, "save", full_disk)
+    target = tmp_path / "ckpt" / "last.pt"
+    with pytest.raises(OutputError, match="last.pt: cannot write: PytorchStreamWriter failed"):
+        save_checkpoint(target, GGDNet(TINY))
+    assert not target.exists() and list(target.parent.iterdir()) == []

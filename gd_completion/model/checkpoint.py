@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from ..atomic import atomic_path
+from ..atomic import atomic_path, output_error
 from ..errors import CheckpointError
 from ..preprocess import Preprocessing
 from .config import GGDConfig
@@ -30,7 +30,10 @@ def save_checkpoint(path: str | os.PathLike, model: GGDNet, preprocessing: Prepr
             "preprocessing": (preprocessing or Preprocessing()).to_dict(),
             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, **extra}
     with atomic_path(path) as tmp:
-        torch.save(data, tmp)
+        try:
+            torch.save(data, tmp)
+        except RuntimeError as exc:   # torch's zip writer reports a full disk or a failed write this way
+            raise output_error(path, exc) from exc
     return path
 
 
