@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -24,9 +23,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "test"))
 sys.path.insert(0, str(REPO))
 
-import rclpy  # noqa: E402
 from kitti_frames import KittiFrame, cloud_msg, read_frame  # noqa: E402
-from ros_live import DOMAIN_ID, Client, NodeProcess, ros_env  # noqa: E402
+from ros_live import benchmark_session  # noqa: E402
 
 from gd_completion.geometry import Box3D, crop_boxes  # noqa: E402
 
@@ -65,13 +63,6 @@ def pandaset_frame(index: int) -> KittiFrame:
     return KittiFrame(f"pandaset-{index:02d}", points, frame.boxes)
 
 
-def vm_hwm_kib(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1])
-    return -1
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0)
@@ -83,17 +74,8 @@ def main() -> None:
     args = ap.parse_args()
 
     frame = busy_frame(args.vehicles) if args.pandaset is None else pandaset_frame(args.pandaset)
-    tmp = Path(tempfile.mkdtemp(prefix="bench_node_"))
-    env = ros_env(tmp)
-    import os
-    os.environ.update(env)
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
-    node = NodeProcess(tmp, {"num_threads": str(args.num_threads), "boxes_type": "marker",
-                                     "device": args.device}, env, "bench")
-    try:
-        node.wait_ready()
-        client = Client(context, node_name="bench")
+    params = {"num_threads": str(args.num_threads), "boxes_type": "marker", "device": args.device}
+    with benchmark_session(params, "bench") as (node, client):
         client.warm_up(frame, timeout=60)
         time.sleep(3.0)  # let the warm-up frames drain
         base = client.settled_diagnostics()
@@ -112,7 +94,7 @@ def main() -> None:
         client.wait_reply(last, timeout=30)
         time.sleep(2.5)
         diag = client.settled_diagnostics()
-        hwm = vm_hwm_kib(node.proc.pid)
+        hwm = node.peak_rss_mib()
         answered = [s for s in sent if s in client.reply_times]
         lat = np.array([client.reply_times[s] - sent[s] for s in answered]) * 1e3
         thirds = np.array_split(np.array(sorted(answered)), 3)
@@ -142,12 +124,7 @@ def main() -> None:
               f"cloud_no_boxes {delta['drop_cloud_no_boxes']} + boxes_no_cloud {delta['drop_boxes_no_cloud']} + "
               f"overflow {delta['drop_cloud_overflow']} + pending {int(diag['pending_clouds'])} = {accounted} "
               f"of {len(sent)} sent")
-        print(f"node peak RSS (VmHWM): {hwm / 1024:.0f} MiB")
-        client.close()
-    finally:
-        code = node.stop()
-        rclpy.try_shutdown(context=context)
-    print(f"node exit code after SIGTERM: {code}")
+        print(f"node peak RSS (VmHWM): {hwm:.0f} MiB")
 
 
 if __name__ == "__main__":

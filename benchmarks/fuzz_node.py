@@ -15,9 +15,7 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -27,9 +25,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "test"))
 sys.path.insert(0, str(REPO))
 
-import rclpy  # noqa: E402
 from kitti_frames import KittiFrame, cloud_msg, read_frame  # noqa: E402
-from ros_live import DOMAIN_ID, Client, NodeProcess, ros_env  # noqa: E402
+from ros_live import benchmark_session  # noqa: E402
 from sensor_msgs.msg import PointField  # noqa: E402
 
 from gd_completion.geometry import Box3D  # noqa: E402
@@ -94,13 +91,6 @@ def hostile_boxes(frame: KittiFrame, rng: np.random.Generator, kind: int | None 
     return [Box3D(car.center, car.size, car.yaw, "truck", -5)], "velodyne"
 
 
-def vm_hwm_mib(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--messages", type=int, default=10_000)
@@ -112,18 +102,11 @@ def main() -> int:
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     frame = small_frame()
-    tmp = Path(tempfile.mkdtemp(prefix="fuzz_node_"))
-    env = ros_env(tmp)
-    os.environ.update(env)
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
     extra = dict(p.split(":=", 1) for p in args.param)
-    node = NodeProcess(tmp, {"num_threads": "0", "boxes_type": "marker", "sync_max_wait": "0.5", **extra}, env, "fuzz")
     print(f"node parameters beyond the defaults: {extra or 'none'}")
     crashed = False
-    try:
-        node.wait_ready()
-        client = Client(context, node_name="fuzz")
+    params = {"num_threads": "0", "boxes_type": "marker", "sync_max_wait": "0.5", **extra}
+    with benchmark_session(params, "fuzz") as (node, client):
         client.warm_up(frame, timeout=60)
         for _ in range(10):                       # a normal frame's cost, before the flood
             assert client.send_until_reply(frame) is not None
@@ -176,7 +159,7 @@ def main() -> int:
         time.sleep(2.0)
         diag = client.settled_diagnostics() if not crashed else client.diag
         costs = np.array(client.processing_times[before:]) if len(client.processing_times) > before else np.zeros(1)
-        rss = vm_hwm_mib(node.proc.pid) if node.proc.poll() is None else float("nan")
+        rss = node.peak_rss_mib()
         print(f"flood: {sum(sent.values())} messages in {flood_s:.0f} s ({sent})")
         print(f"crashes: {int(crashed)}; valid frames answered after the flood: {answered_after}/5")
         print(f"processing time: normal frame {normal:.0f} ms; during the flood max {costs.max():.0f} ms "
@@ -192,12 +175,7 @@ def main() -> int:
                     if (k.startswith(("skipped_", "drop_", "bad_", "boxes_", "errors", "nonfinite"))
                         and diag.get(k, 0) - base.get(k, 0))}
         print(f"counted skips and drops during the flood: {counters}")
-        client.close()
-    finally:
-        code = node.stop()
-        rclpy.try_shutdown(context=context)
-    print(f"node exit code after SIGTERM: {code}")
-    ok = not crashed and answered_after == 5 and code == 0
+    ok = not crashed and answered_after == 5 and node.exit_code == 0
     return 0 if ok else 1
 
 

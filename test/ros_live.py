@@ -5,8 +5,11 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import rclpy
@@ -40,6 +43,7 @@ class NodeProcess:
 
     def __init__(self, tmp: Path, params: dict[str, str], env: dict[str, str], name: str) -> None:
         self.stderr_path = tmp / f"{name}.stderr"
+        self.exit_code: int | None = None
         args = [sys.executable, "-m", "gd_completion.ros.completer_node", "--ros-args", "-r", f"__node:={name}"]
         for k, v in params.items():
             args += ["-p", f"{k}:={v}"]
@@ -62,6 +66,14 @@ class NodeProcess:
                 raise RuntimeError(f"completer exited with {self.proc.returncode} before ready:\n{self.stderr[-3000:]}")
             time.sleep(0.1)
         raise RuntimeError(f"completer not ready after {timeout} s:\n{self.stderr[-3000:]}")
+
+    def peak_rss_mib(self) -> float:
+        """The node's peak resident memory (VmHWM), MiB; nan once it has exited."""
+        try:
+            lines = Path(f"/proc/{self.proc.pid}/status").read_text().splitlines()
+        except OSError:
+            return float("nan")
+        return next((int(line.split()[1]) / 1024 for line in lines if line.startswith("VmHWM:")), float("nan"))
 
     def stop(self, sig: int = signal.SIGTERM, timeout: float = 20.0) -> int:
         if self.proc.poll() is None:
@@ -188,3 +200,27 @@ class Client:
         self.node.destroy_node()
 
 
+
+
+@contextmanager
+def benchmark_session(params: dict[str, str], name: str) -> Iterator[tuple[NodeProcess, Client]]:
+    """For the benchmark scripts: a completer subprocess with `params` and a client in this process, on the
+    large-message profile. On leaving, the node is stopped with SIGTERM; its exit code is printed and kept in
+    `node.exit_code`."""
+    tmp = Path(tempfile.mkdtemp(prefix=f"{name}_"))
+    env = ros_env(tmp)
+    os.environ.update(env)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    node = NodeProcess(tmp, params, env, name)
+    client = None
+    try:
+        node.wait_ready()
+        client = Client(context, node_name=name)
+        yield node, client
+    finally:
+        if client is not None:
+            client.close()
+        node.exit_code = node.stop()
+        rclpy.try_shutdown(context=context)
+        print(f"node exit code after SIGTERM: {node.exit_code}")
