@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -43,7 +44,7 @@ def _compiled(t: Tensor) -> bool:
     return _COMPILED["enabled"] and t.device.type == "cpu"
 
 
-def _as_numpy(t: Tensor):
+def _as_numpy(t: Tensor) -> np.ndarray:
     return t.detach().to(torch.float32).contiguous().numpy()
 
 
