@@ -14,6 +14,7 @@ SUBCOMMANDS = {
     "train": "gd_completion.tools.train",
     "convert": "gd_completion.tools.convert",
     "complete": "gd_completion.tools.complete",
+    "complete-cloud": "gd_completion.tools.complete_cloud",
     "play": "gd_completion.tools.play",
     "render": "gd_completion.tools.render",
     "evaluate": "gd_completion.tools.evaluate",

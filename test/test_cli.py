@@ -27,6 +27,7 @@ print("heavy modules:", sorted(m for m in ("torch", "rclpy") if m in sys.modules
     ["convert", "pandaset", "--help"],
     ["convert", "hesai", "--help"],
     ["complete", "--help"],
+    ["complete-cloud", "--help"],
     ["render", "--help"],
     ["train", "--help"],
     ["evaluate", "--help"],
