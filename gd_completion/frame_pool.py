@@ -53,6 +53,7 @@ class FramePool:
             raise ValueError(f"workers must be >= 1, got {workers}")
         if completer is not None and workers > 1:
             raise ValueError("an injected completer runs in this process: use workers=1 with completer=")
+        self.workers = workers
         self._pool: ProcessPoolExecutor | None = None
         if workers > 1:
             options = {**options, "num_threads": options.get("num_threads") or 1}

@@ -30,13 +30,21 @@ class FrameLimits:
     max_points_per_vehicle: int = 200_000  # more points in one box: skipped (no vehicle returns that many)
     max_output_points: int = 2_000_000   # points published per frame at most (whole vehicles, nearest first)
     time_budget_s: float = 2.0           # seconds of completion per frame; vehicles not started by then are skipped
+                                         # (math.inf: none, as offline, where output must not depend on load)
 
     def __post_init__(self) -> None:
-        bad = [k for k, v in asdict(self).items() if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0)]
+        values = asdict(self)
+        if values["time_budget_s"] == math.inf:
+            values.pop("time_budget_s")
+        bad = [k for k, v in values.items() if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0)]
         if bad:
             raise ValueError(f"frame limits must be positive and finite: {', '.join(bad)}")
         if self.min_box_length >= self.max_box_length:
             raise ValueError("min_box_length must be below max_box_length")
+
+
+# The offline tools' limits: no time budget, so what they write never depends on the machine's load.
+OFFLINE_LIMITS = FrameLimits(time_budget_s=math.inf)
 
 
 def implausible(box: Box3D, limits: FrameLimits) -> bool:

@@ -41,8 +41,11 @@ def test_implausible_sizes():
     assert implausible(car(0, 0, 1, (4.5, 7.0, 1.5)), limits)
     with pytest.raises(ValueError, match="positive"):
         FrameLimits(max_boxes=0)
+    for bad in (float("nan"), -1.0, 0.0):
+        with pytest.raises(ValueError, match="positive"):
+            FrameLimits(time_budget_s=bad)
     with pytest.raises(ValueError, match="positive"):
-        FrameLimits(time_budget_s=float("inf"))
+        FrameLimits(max_box_length=float("inf"))      # only the time budget may be unlimited
 
 
 def test_screen_duplicates_and_count_nearest_first():
@@ -88,3 +91,14 @@ def test_point_time_output_and_cancel_limits(model):
     result = VehicleCompleter(model).complete_frame(points, boxes, cancel=stop)
     assert result.stats.completed == 0 and result.stats.skipped == {"cancelled": 3}
     assert len(result.points) == 0
+
+
+def test_offline_limits_have_no_time_budget(model):
+    from gd_completion.limits import OFFLINE_LIMITS
+
+    assert OFFLINE_LIMITS.time_budget_s == float("inf")
+    assert OFFLINE_LIMITS.max_boxes == FrameLimits().max_boxes
+    boxes = [car(12.0, 4.0, 1), car(6.0, -3.0, 2)]
+    points = np.concatenate([car_points(b, 300, i) for i, b in enumerate(boxes)])
+    result = VehicleCompleter(model, limits=OFFLINE_LIMITS).complete_frame(points, boxes)
+    assert result.stats.completed == 2 and not result.stats.skipped

@@ -9,7 +9,8 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from contextlib import nullcontext
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from gd_completion.bags.typestore import POINTCLOUD2, serialize
 from gd_completion.bags.writer import STORAGES, add_connection, atomic_bag_writer, copy_connection, has_definition
 from gd_completion.errors import BagError, GDCompletionError
 from gd_completion.frame_pool import FramePool, InOrder
+from gd_completion.limits import OFFLINE_LIMITS
 from gd_completion.pointcloud2 import read_xyz, write_points
 from gd_completion.progress import progress_bar
 from gd_completion.stamp_sync import SYNC_TOLERANCE_S, SyncCounters
@@ -83,21 +85,26 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                  boxes_topic: str | None = None, output_topic: str | None = None, model: str | None = None,
                  storage: str = "mcap", completer: Any = None, overwrite: bool = False,
                  progress: bool = True, workers: int = 1, sync_tolerance: float = SYNC_TOLERANCE_S,
-                 skip_unknown_types: bool = False, **completer_options: Any) -> CompletionSummary:
+                 skip_unknown_types: bool = False, pool: FramePool | None = None,
+                 **completer_options: Any) -> CompletionSummary:
     """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message.
 
     Clouds and boxes are paired as the node pairs them (stamps within `sync_tolerance` seconds); a cloud the
     node would leave unpaired gets an empty completion. Completions carry the cloud's header and bag timestamp.
-    `completer_options` go to `VehicleCompleter.from_checkpoint` (device, num_threads, min_points, labels, ...).
+    `completer_options` go to `VehicleCompleter.from_checkpoint` (device, num_threads, min_points, labels,
+    limits: default `OFFLINE_LIMITS`, no time budget, so the output never depends on the machine's load).
     `workers` > 1 completes frames in that many spawned processes; the output bag is the same as with
     `workers=1`, message for message and in the same write order. An injected `completer` works only with
-    `workers=1`. The bag's metadata records the package version, the model's SHA-256 and the parameters.
+    `workers=1`. A `pool` given is used (and left open) instead of one made from `workers`, `model`,
+    `completer_options` and `completer`, so many bags can share it. The bag's metadata records the package
+    version, the model's SHA-256 and the parameters.
     A topic of a type with no stored definition and unknown here cannot be copied: BagError, unless
     `skip_unknown_types`, which leaves it out with a warning on stderr (counted in `summary.not_copied`).
     """
     from gd_completion.model.checkpoint import DEFAULT_WEIGHTS
     from gd_completion.pipeline import completion_to_structured
 
+    completer_options.setdefault("limits", OFFLINE_LIMITS)
     summary = CompletionSummary()
     start = time.perf_counter()
     with open_bag(src) as reader:
@@ -113,10 +120,12 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                   "the bag stores no definition; not copied", file=sys.stderr)
             summary.not_copied[conn.topic] = summary.not_copied.get(conn.topic, 0) + conn.msgcount
         total = sum(c.msgcount for c in reader.connections if c.topic == cloud_topic)
-        queue: InOrder[Any] = InOrder(max_in_flight=2 * workers)  # memory stays flat on long bags
+        in_flight = 2 * (pool.workers if pool is not None else workers)
+        queue: InOrder[Any] = InOrder(max_in_flight=in_flight)  # memory stays flat on long bags
         waiting = {}  # cloud index -> its slot in the queue, until its pairing is decided
         try:
-            with (FramePool(workers, model, completer_options, completer) as pool,
+            frames = nullcontext(pool) if pool is not None else FramePool(workers, model, completer_options, completer)
+            with (frames as pool,
                   atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer,
                   progress_bar("complete", "frames", total=total, quiet=not progress) as bar):
                 conns = {conn.id: copy_connection(writer, conn, src) for conn in copied}
@@ -182,6 +191,8 @@ _tolerance = _bounded(float, 0.0, 10.0, "tolerance", "seconds in [0, 10]")
 
 
 def _run(args: argparse.Namespace) -> int:
+    from gd_completion.tools import complete_many as many
+
     options: dict[str, Any] = {"device": args.device}
     if args.threads:
         options["num_threads"] = args.threads
@@ -189,14 +200,37 @@ def _run(args: argparse.Namespace) -> int:
         options["min_points"] = args.min_points
     if args.labels:
         options["labels"] = [label.strip().lower() for label in args.labels.split(",") if label.strip()]
-    workers = args.workers or os.cpu_count() or 1
-    summary = complete_bag(args.input, args.output, cloud_topic=args.cloud_topic, boxes_topic=args.boxes_topic,
-                           output_topic=args.output_topic, model=args.model, storage=args.storage,
-                           overwrite=args.overwrite, progress=not args.quiet, workers=workers,
-                           sync_tolerance=args.sync_tolerance, skip_unknown_types=args.skip_unknown_types,
-                           **options)
-    print(f"wrote {args.output}: {summary.text()}")
-    return 0
+    options["limits"] = replace(OFFLINE_LIMITS, time_budget_s=args.time_budget or math.inf)
+    if args.engine == "local" and many.is_single_bag(args.input):
+        workers = args.workers or os.cpu_count() or 1
+        summary = complete_bag(args.input[0], args.output, cloud_topic=args.cloud_topic,
+                               boxes_topic=args.boxes_topic, output_topic=args.output_topic, model=args.model,
+                               storage=args.storage, overwrite=args.overwrite, progress=not args.quiet,
+                               workers=workers, sync_tolerance=args.sync_tolerance,
+                               skip_unknown_types=args.skip_unknown_types, **options)
+        print(f"wrote {args.output}: {summary.text()}")
+        return 0
+    if many.is_single_bag(args.input):  # --engine ray on one bag: OUTPUT is still the output bag
+        jobs = [many.BagJob(Path(args.input[0]), Path(args.output))]
+        if jobs[0].out.exists() and not args.overwrite:
+            raise BagError(f"{args.output}: output exists (use --overwrite to replace it)")
+    else:
+        jobs = many.plan_jobs(args.input, args.output)
+    workers = args.workers or (1 if args.address else os.cpu_count() or 1)
+    start = time.perf_counter()
+    outcomes = many.complete_many(
+        jobs, engine=args.engine, workers=workers, model=args.model, address=args.address,
+        overwrite=args.overwrite, progress=not args.quiet, report=many.print_line, completer_options=options,
+        cloud_topic=args.cloud_topic, boxes_topic=args.boxes_topic, output_topic=args.output_topic,
+        storage=args.storage, sync_tolerance=args.sync_tolerance, skip_unknown_types=args.skip_unknown_types)
+    for outcome in outcomes:
+        if outcome.status == "skipped":
+            many.print_line(outcome)
+    failed = [o for o in outcomes if o.status == "failed"]
+    print(many.summary_text(outcomes, time.perf_counter() - start))
+    for outcome in failed:
+        print(f"gd-completion complete: error: {outcome.detail}", file=sys.stderr)
+    return 2 if failed else 0
 
 
 def add_sync_tolerance(parser: argparse.ArgumentParser) -> None:
@@ -210,8 +244,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `complete`."""
     parser = subparsers.add_parser("complete", help="complete the vehicles of every frame of a bag",
                                    description=__doc__)
-    parser.add_argument("input", help="input rosbag2 (folder, .mcap or .db3)")
-    parser.add_argument("output", help="output bag folder (written atomically; must not exist)")
+    parser.add_argument("input", nargs="+",
+                        help="input rosbag2 (folder, .mcap or .db3); or several, a quoted glob ('bags/*') or a "
+                             "manifest (.txt: one bag per line, # comments)")
+    parser.add_argument("output", help="output bag (written atomically; must not exist); with several inputs a "
+                        "folder that gets one bag per input, named after it (existing ones are skipped: a rerun "
+                        "resumes)")
     parser.add_argument("--cloud-topic", default=None, help="PointCloud2 topic (default: the only one, or "
                         + ", ".join(DEFAULT_CLOUD_TOPICS) + ")")
     parser.add_argument("--boxes-topic", default=None,
@@ -227,6 +265,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--workers", type=_workers, default=1, metavar="N",
                         help="complete frames in N processes (default 1: in this process, its vehicles on "
                         "--threads threads); 0 = one per core. The output bag is the same for every N")
+    parser.add_argument("--engine", choices=("local", "ray"), default="local",
+                        help="local: bags one after the other in this process (frames on --workers processes); "
+                             "ray: one bag per Ray task on --workers workers (default local)")
+    parser.add_argument("--address", default=None,
+                        help="with --engine ray: the Ray cluster ('auto', 'HOST:6379' or 'ray://HOST:10001'; "
+                             "default: start a local Ray with --workers CPUs)")
+    parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                        help="seconds of completion per frame, as the node's time_budget (default: none offline, so "
+                        "the output never depends on the machine's load)")
     parser.add_argument("--min-points", type=int, default=None,
                         help="skip vehicles with fewer measured points (default: the checkpoint's, 20)")
     parser.add_argument("--labels", default=None, help="comma-separated labels to complete (default car,van,truck)")
