@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -107,6 +110,32 @@ def test_local_resumes_and_reports_bad_bags(small_bags: Path, local_outputs: Pat
     assert sorted(p.name for p in out.iterdir()) == ["a", "b", "c"]
     for name in NAMES:
         assert _files(out / name) == _files(local_outputs / name)
+
+
+@pytest.mark.integration
+def test_killed_run_resumes_with_the_remaining_bags(small_bags: Path, local_outputs: Path, model_path: str,
+                                                   tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A real kill: SIGKILL once the first output bag is there, then the same command again."""
+    out = tmp_path / "out"
+    args = ["complete", str(small_bags / "*"), str(out), "--model", model_path, "--threads", "1", "--quiet"]
+    proc = subprocess.Popen([sys.executable, "-m", "gd_completion.cli", *args], cwd=Path(__file__).parents[1],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        end = time.monotonic() + 120.0
+        while not (out / "a").exists() and proc.poll() is None and time.monotonic() < end:
+            time.sleep(0.01)
+    finally:
+        proc.kill()
+        proc.wait()
+    finished = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
+    assert "a" in finished and len(finished) < len(NAMES), finished     # killed mid-way
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    for name in NAMES:
+        verb = "skipped" if name in finished else "done"
+        assert f"{verb} {small_bags / name} -> {out / name}" in printed, printed
+        assert _files(out / name) == _files(local_outputs / name)
+    assert sorted(p.name for p in out.iterdir()) == list(NAMES)      # no partial temporaries left
 
 
 @pytest.fixture(scope="module")
