@@ -8,7 +8,6 @@ runs out, the vehicles that matter most to a planner are the ones done.
 from __future__ import annotations
 
 import math
-from collections import Counter
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
@@ -54,16 +53,14 @@ def implausible(box: Box3D, limits: FrameLimits) -> bool:
                 and width <= limits.max_box_width and height <= limits.max_box_height)
 
 
-def screen_boxes(boxes: Sequence[Box3D], limits: FrameLimits) -> tuple[list[int], Counter]:
-    """(indices of the boxes to complete, nearest to the origin first; skip counts by reason).
+def screen_boxes(boxes: Sequence[Box3D], limits: FrameLimits) -> tuple[list[int], list[tuple[int, str]]]:
+    """(indices of the boxes to complete, nearest to the origin first; (index, reason) of each box skipped).
 
     Reasons: `implausible_box`; `duplicate_box` (centre within `duplicate_distance` of a nearer box
     already kept); `too_many_boxes` (after `max_boxes` were kept). Cost: O(boxes * max_boxes).
     """
-    skipped: Counter = Counter()
     plausible = [i for i, b in enumerate(boxes) if not implausible(b, limits)]
-    if len(plausible) < len(boxes):
-        skipped["implausible_box"] += len(boxes) - len(plausible)
+    skipped = [(i, "implausible_box") for i in sorted(set(range(len(boxes))) - set(plausible))]
     if not plausible:
         return [], skipped
     centres = boxes_to_array([boxes[i] for i in plausible])[:, :3]
@@ -72,11 +69,11 @@ def screen_boxes(boxes: Sequence[Box3D], limits: FrameLimits) -> tuple[list[int]
     kept: list[int] = []
     for rank, j in enumerate(order):
         if len(kept) == limits.max_boxes:
-            skipped["too_many_boxes"] += len(order) - rank
+            skipped += [(plausible[k], "too_many_boxes") for k in order[rank:]]
             break
         near = ((kept_centres[:len(kept)] - centres[j]) ** 2).sum(-1) < limits.duplicate_distance ** 2
         if near.any():
-            skipped["duplicate_box"] += 1
+            skipped.append((plausible[j], "duplicate_box"))
         else:
             kept_centres[len(kept)] = centres[j]
             kept.append(plausible[j])

@@ -36,12 +36,18 @@ class FrameStats:
 
     completed: int = 0
     skipped: Counter = field(default_factory=Counter)
+    skipped_boxes: list[tuple[Box3D, str]] = field(default_factory=list)   # each skipped box and its reason
     nonfinite_points: int = 0
     ignored_labels: int = 0
 
     @property
     def skipped_total(self) -> int:
         return sum(self.skipped.values())
+
+    def skip(self, box: Box3D, reason: str) -> None:
+        """Count `box` as skipped for `reason` (a key of `skipped`, a `skipped_<reason>` counter of the node)."""
+        self.skipped[reason] += 1
+        self.skipped_boxes.append((box, reason))
 
 
 @dataclass
@@ -163,19 +169,18 @@ class VehicleCompleter:
             if box.label not in self.labels:
                 stats.ignored_labels += 1
             elif box_problem(box) is not None:
-                stats.skipped["degenerate_box"] += 1
+                stats.skip(box, "degenerate_box")
             else:
                 usable.append(box)
         kept, screened = screen_boxes(usable, self.limits)
-        stats.skipped.update(screened)
+        for i, reason in screened:
+            stats.skip(usable[i], reason)
         vehicles, too_few = crop_vehicles(points, [usable[i] for i in kept], self.preprocessing)
-        if too_few:
-            stats.skipped["too_few_points"] += len(too_few)
-        crowded = [v for v in vehicles if len(v.measured) > self.limits.max_points_per_vehicle]
-        if crowded:
-            stats.skipped["too_many_points"] += len(crowded)
-            vehicles = [v for v in vehicles if len(v.measured) <= self.limits.max_points_per_vehicle]
-        return vehicles
+        for box in too_few:
+            stats.skip(box, "too_few_points")
+        for vehicle in (v for v in vehicles if len(v.measured) > self.limits.max_points_per_vehicle):
+            stats.skip(vehicle.box, "too_many_points")
+        return [v for v in vehicles if len(v.measured) <= self.limits.max_points_per_vehicle]
 
     def complete_normalized(self, partials: Sequence[np.ndarray]) -> np.ndarray:
         """Complete vehicles given in the normalised box frame; returns (B, num_output, 3) float32."""
@@ -213,11 +218,11 @@ class VehicleCompleter:
         budget = self.limits.max_output_points
         for vehicle, completion in zip(vehicles, completions):
             if completion is None:
-                stats.skipped["cancelled" if cancel is not None and cancel.is_set() else "time_budget"] += 1
+                stats.skip(vehicle.box, "cancelled" if cancel is not None and cancel.is_set() else "time_budget")
                 continue
             measured = vehicle.measured if self.include_input_points else np.zeros((0, 3), np.float32)
             if len(measured) + len(completion) > budget:
-                stats.skipped["output_limit"] += 1
+                stats.skip(vehicle.box, "output_limit")
                 continue
             budget -= len(measured) + len(completion)
             done.append((vehicle, measured, completion))

@@ -131,12 +131,22 @@ def completer(model: str | Path | None = None, *, device: str = "cpu", threads: 
         return _completers[key]
 
 
+# What the pipeline's skip reasons mean, for messages (gd_completion.limits.FrameLimits).
+SKIP_REASONS = {
+    "implausible_box": "implausible size for a vehicle",
+    "duplicate_box": "duplicate of a nearer box",
+    "too_many_boxes": "beyond the boxes completed per frame",
+    "too_many_points": "more points in the box than any vehicle returns",
+    "output_limit": "output point limit reached",
+    "time_budget": "time budget spent",
+}
+
+
 def complete_cloud_report(points: np.ndarray, boxes: Sequence[Box3D | Sequence[Any]], *,
                           model: str | Path | None = None, device: str = "cpu", threads: int = 0,
                           min_points: int | None = None, include_input_points: bool = True) -> CloudCompletion:
     """`complete_cloud`, with the boxes skipped and why."""
     from gd_completion.pipeline import completion_to_structured
-    from gd_completion.preprocess import crop_vehicles
 
     xyz = cloud_xyz(points)
     boxes = [as_box(item, k + 1) for k, item in enumerate(boxes)]
@@ -147,22 +157,19 @@ def complete_cloud_report(points: np.ndarray, boxes: Sequence[Box3D | Sequence[A
                        include_input_points=include_input_points)
     result = engine.complete_frame(xyz, boxes)
     table = completion_to_structured(result)
-    done = set(np.unique(table["instance_id"]).tolist())
     finite = xyz[finite_mask(xyz)]
-    skipped = []
-    for box in (b for b in boxes if b.instance_id not in done):
-        problem = box_problem(box)
-        if box.label not in engine.labels:
-            reason = f"label {box.label!r} is not completed (only {', '.join(VEHICLES)})"
-        elif problem is not None:
-            reason = f"unusable box: {problem}"
-        elif crop_vehicles(finite, [box], engine.preprocessing)[1]:
+    skipped = [(box, f"label {box.label!r} is not completed (only {', '.join(VEHICLES)})")
+               for box in boxes if box.label not in engine.labels]
+    for box, reason in result.stats.skipped_boxes:
+        if reason == "degenerate_box":
+            text = f"unusable box: {box_problem(box)}"
+        elif reason == "too_few_points":
             count = len(crop_boxes(finite, [box], engine.preprocessing.crop_margin)[0])
-            reason = (f"too few points: {count} in the box, {engine.preprocessing.min_points} needed above "
-                      "the ground (--min-points)")
+            text = (f"too few points: {count} in the box, {engine.preprocessing.min_points} needed above the "
+                    "ground (--min-points)")
         else:
-            reason = "frame limits (implausible size, duplicate box or output/time budget; see the counts)"
-        skipped.append((box, reason))
+            text = SKIP_REASONS.get(reason, reason)
+        skipped.append((box, text))
     return CloudCompletion(table, skipped, Counter(result.stats.skipped), int(result.stats.completed))
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import threading
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -53,11 +54,13 @@ def test_screen_duplicates_and_count_nearest_first():
              car(0, 0, 5, (4500.0, 1800.0, 1500.0))] + [car(10.0, 0.0, 100 + i) for i in range(200)]
     kept, skipped = screen_boxes(boxes, FrameLimits(max_boxes=2))
     assert [boxes[i].instance_id for i in kept] == [2, 4]                     # nearest first
-    assert skipped == {"implausible_box": 1, "duplicate_box": 201, "too_many_boxes": 1}
+    assert Counter(reason for _, reason in skipped) == {"implausible_box": 1, "duplicate_box": 201,
+                                                         "too_many_boxes": 1}
+    assert (4, "implausible_box") in skipped and (0, "too_many_boxes") in skipped and (2, "duplicate_box") in skipped
     kept, skipped = screen_boxes(boxes, FrameLimits())
     assert [boxes[i].instance_id for i in kept] == [2, 4, 1]
-    assert sum(skipped.values()) + len(kept) == len(boxes)
-    assert screen_boxes([], FrameLimits()) == ([], {})
+    assert sorted(kept + [i for i, _ in skipped]) == list(range(len(boxes)))   # every box kept or skipped once
+    assert screen_boxes([], FrameLimits()) == ([], [])
 
 
 def test_hostile_frame_is_bounded_and_counted(model):
@@ -69,6 +72,7 @@ def test_hostile_frame_is_bounded_and_counted(model):
     result = completer.complete_frame(points, hostile)
     assert result.stats.completed == 2
     assert result.stats.skipped == {"duplicate_box": 200, "implausible_box": 2}
+    assert {box.instance_id for box, reason in result.stats.skipped_boxes if reason == "implausible_box"} == {90, 91}
     assert sorted(set(result.instance_id.tolist())) == [1, 2]
     assert len(result.points) == 800 + 2 * 2048          # no point of the cloud re-published as "measured"
     assert list(dict.fromkeys(result.instance_id.tolist())) == [1, 2]      # output in message order
