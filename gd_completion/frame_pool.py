@@ -38,8 +38,8 @@ def _in_worker(task: Callable[..., Any], *args: Any) -> Any:
     return task(_worker_completer, *args)
 
 
-def _complete(completer: Any, points: np.ndarray, boxes: list[Box3D]) -> Any:
-    return completer.complete_frame(points, boxes)
+def _complete(completer: Any, points: np.ndarray, boxes: list[Box3D], stamp_ns: int | None) -> Any:
+    return completer.complete_frame(points, boxes, stamp_ns=stamp_ns)
 
 
 class FramePool:
@@ -73,9 +73,10 @@ class FramePool:
         future.set_result(task(self.completer, *args))
         return future
 
-    def submit(self, points: np.ndarray, boxes: list[Box3D]) -> Future:
-        """Complete one frame -> Future of its FrameCompletion."""
-        return self.run(_complete, points, boxes)
+    def submit(self, points: np.ndarray, boxes: list[Box3D], stamp_ns: int | None = None) -> Future:
+        """Complete one frame (stamped: the completer's track fusion, if any, uses it) -> Future of its
+        FrameCompletion."""
+        return self.run(_complete, points, boxes, stamp_ns)
 
     def close(self) -> None:
         """Stop the worker processes (pending frames are cancelled)."""

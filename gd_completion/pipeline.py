@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from gd_completion.errors import DeviceError
+from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask
 from gd_completion.limits import FrameLimits, screen_boxes
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
@@ -110,6 +111,8 @@ class VehicleCompleter:
         include_input_points: bool = True,
         device: str = "cpu",
         threads: int = 1,
+        fusion: TrackFusion | None = None,
+        publish_fused_points: bool = False,
     ) -> None:
         self.model = model.to(device).eval()
         self.device = torch.device(device)
@@ -117,6 +120,8 @@ class VehicleCompleter:
         self.limits = limits or FrameLimits()
         self.labels = frozenset(labels)
         self.include_input_points = bool(include_input_points)
+        self.fusion = fusion
+        self.publish_fused_points = bool(publish_fused_points)
         self.num_input = model.config.num_input
         self.num_output = model.config.num_output
         if threads < 1:
@@ -206,13 +211,21 @@ class VehicleCompleter:
             return self.model(cloud.to(self.device)).completion[0].float().cpu().numpy()
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],
-                       cancel: threading.Event | None = None) -> FrameCompletion:
+                       cancel: threading.Event | None = None, stamp_ns: int | None = None) -> FrameCompletion:
         """Complete the vehicles of one frame within `limits`, nearest first; points in and out are in the
         cloud's frame, vehicles in the output in the order of `boxes`. Vehicles not started when the time
-        budget is spent, or once `cancel` is set, are skipped and counted (`time_budget`, `cancelled`)."""
+        budget is spent, or once `cancel` is set, are skipped and counted (`time_budget`, `cancelled`).
+
+        With `fusion` set and `stamp_ns` given, each tracked vehicle is completed from its track's fused
+        partial (all of its frames so far, `fusion.TrackFusion`); with `publish_fused_points` its measured
+        output points are the fused ones too."""
         stats = FrameStats()
         deadline = time.monotonic() + self.limits.time_budget_s
         vehicles = self.prepare(points, boxes, stats)
+        fusion = self.fusion if stamp_ns is not None else None
+        if fusion is not None:
+            fusion.expire(stamp_ns)
+            vehicles = fusion.update(stamp_ns, vehicles)
         completions = self._complete_all([v.normalized for v in vehicles], deadline, cancel)
         done = []
         budget = self.limits.max_output_points
@@ -220,7 +233,12 @@ class VehicleCompleter:
             if completion is None:
                 stats.skip(vehicle.box, "cancelled" if cancel is not None and cancel.is_set() else "time_budget")
                 continue
-            measured = vehicle.measured if self.include_input_points else np.zeros((0, 3), np.float32)
+            if not self.include_input_points:
+                measured = np.zeros((0, 3), np.float32)
+            elif fusion is not None and self.publish_fused_points:
+                measured = fusion.fused_measured(vehicle)
+            else:
+                measured = vehicle.measured
             if len(measured) + len(completion) > budget:
                 stats.skip(vehicle.box, "output_limit")
                 continue

@@ -67,13 +67,20 @@ class NodeProcess:
             time.sleep(0.1)
         raise RuntimeError(f"completer not ready after {timeout} s:\n{self.stderr[-3000:]}")
 
-    def peak_rss_mib(self) -> float:
-        """The node's peak resident memory (VmHWM), MiB; nan once it has exited."""
+    def _status_mib(self, field: str) -> float:
         try:
             lines = Path(f"/proc/{self.proc.pid}/status").read_text().splitlines()
         except OSError:
             return float("nan")
-        return next((int(line.split()[1]) / 1024 for line in lines if line.startswith("VmHWM:")), float("nan"))
+        return next((int(line.split()[1]) / 1024 for line in lines if line.startswith(f"{field}:")), float("nan"))
+
+    def peak_rss_mib(self) -> float:
+        """The node's peak resident memory (VmHWM), MiB; nan once it has exited."""
+        return self._status_mib("VmHWM")
+
+    def rss_mib(self) -> float:
+        """The node's resident memory now (VmRSS), MiB; nan once it has exited."""
+        return self._status_mib("VmRSS")
 
     def stop(self, sig: int = signal.SIGTERM, timeout: float = 20.0) -> int:
         if self.proc.poll() is None:

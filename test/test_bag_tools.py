@@ -496,3 +496,35 @@ def test_foxglove_layout_names_the_written_topics() -> None:
                 pandaset.SENSOR_TOPICS[0], pandaset.BOX_TOPICS[1], default_output_topic(pandaset.SENSOR_TOPICS[0])}
     assert expected <= topics
     assert layout["layout"]["first"]["first"] in layout["configById"]
+
+
+def test_complete_with_track_fusion(shared_data: Path, model_path: str, tmp_path: Path) -> None:
+    """A PandaSet bag (track ids from the cuboids' uuids): with --track-fusion a parked car's fused measured points
+    grow frame after frame; without it each frame has its own; --workers 2 is refused for fusion."""
+    bag = tmp_path / "panda"
+    assert main(["convert", "pandaset", str(shared_data / "pandaset-002"), str(bag), "--frames", "4",
+                 "--quiet"]) == 0
+    plain, fused = tmp_path / "plain", tmp_path / "fused"
+    base = ["--model", model_path, "--threads", "1", "--quiet", "--cloud-topic", "/pandar64/points"]
+    assert main(["complete", str(bag), str(plain), *base]) == 0
+    assert main(["complete", str(bag), str(fused), *base, "--track-fusion", "--publish-fused-points"]) == 0
+
+    def measured_per_frame(path: Path) -> list[dict[int, int]]:
+        with open_bag(path) as reader:
+            conns = [c for c in reader.connections if c.topic == "/pandar64/completed"]
+            frames = []
+            for conn, _, raw in iter_raw(reader, conns):
+                pts = read_points(deserialize(raw, conn.msgtype))
+                ids, counts = np.unique(pts["instance_id"][pts["generated"] == 0], return_counts=True)
+                frames.append(dict(zip(ids.tolist(), counts.tolist())))
+            return frames
+    plain_counts, fused_counts = measured_per_frame(plain), measured_per_frame(fused)
+    assert len(fused_counts) == 4
+    seen_all = set.intersection(*(set(f) for f in fused_counts))
+    assert seen_all, "no vehicle completed in all four frames"
+    for track in seen_all:
+        fused_track = [f[track] for f in fused_counts]
+        assert fused_track == sorted(fused_track) and fused_track[-1] > fused_track[0]   # accumulates
+        assert fused_track[-1] > max(f[track] for f in plain_counts)                      # more than any frame
+    code = main(["complete", str(bag), str(tmp_path / "refused"), *base, "--track-fusion", "--workers", "2"])
+    assert code == 2 and not (tmp_path / "refused").exists()

@@ -516,3 +516,25 @@ def test_help_and_unknown_parameters(ros_context, tmp_path):
         assert "unknown parameter 'min_point' is ignored (did you mean 'min_points'?)" in node.stderr
     finally:
         assert node.stop(signal.SIGTERM) == 0
+
+
+def test_track_fusion_live(ros_context, frames, tmp_path):
+    """With track_fusion, the same tracked car over three frames: its fused measured points grow, the track is
+    counted alive in /diagnostics."""
+    params = {"track_fusion": "true", "publish_fused_points": "true", "fusion_expiry": "30.0"}
+    with own_node(ros_context, tmp_path, "fusion", params=params) as (node, client):
+        client.warm_up(frames[3])
+        measured = []
+        for _ in range(3):
+            msg = client.send_until_reply(frames[3])
+            assert msg is not None, node.stderr[-2000:]
+            pts = read_points(msg)
+            assert set(pts["instance_id"].tolist()) == {0} and (pts["generated"] == 1).sum() == NUM_OUTPUT
+            measured.append(int((pts["generated"] == 0).sum()))
+        assert measured[0] < measured[1] < measured[2]          # the track's points accumulate
+        diag = client.settled_diagnostics()
+        end = time.monotonic() + 5.0
+        while "tracks_alive" not in client.diag and time.monotonic() < end:
+            time.sleep(0.1)
+        assert client.diag["tracks_alive"] == 1 and client.diag["tracks_reset"] == 0
+        assert diag["frames_published"] >= 4

@@ -27,6 +27,7 @@ from visualization_msgs.msg import MarkerArray
 
 from gd_completion.box_messages import BoxSet, detections_to_boxes, markers_to_boxes
 from gd_completion.errors import GDCompletionError, PointCloud2Error
+from gd_completion.fusion import FusionLimits, TrackFusion
 from gd_completion.pipeline import VehicleCompleter, completion_to_structured
 from gd_completion.pointcloud2 import read_xyz
 from gd_completion.ros.cloud_messages import structured_to_msg
@@ -96,6 +97,11 @@ class CompleterNode(Node):
         self.completer = completer or VehicleCompleter.from_checkpoint(
             p.model_path or None, device=p.device, num_threads=p.num_threads or None, labels=p.labels)
         self._checkpoint_preprocessing = self.completer.preprocessing
+        if p.track_fusion:
+            self.completer.fusion = TrackFusion(FusionLimits(max_tracks=p.fusion_max_tracks,
+                                                             max_points_per_track=p.fusion_max_points,
+                                                             expiry_s=p.fusion_expiry))
+            self.completer.publish_fused_points = p.publish_fused_points
         check_model_sizes(p, self.completer.num_input, self.completer.num_output, p.model_path or "(shipped weights)")
         self.completer.warm_up()
         boxes_cls, self._to_boxes, boxes_type_name = resolve_boxes_type(p.boxes_type)
@@ -255,7 +261,8 @@ class CompleterNode(Node):
             self._count("boxes_wrong_frame", wrong_frame)
             self._warn("wrong_frame", f"skipping {wrong_frame} box(es) not in the cloud's frame '{frame_id}' "
                                       "(no tf transform here)")
-        completion = self.completer.complete_frame(points, boxes, cancel=self._stopping)
+        completion = self.completer.complete_frame(points, boxes, cancel=self._stopping,
+                                                   stamp_ns=stamp_to_ns(header.stamp))
         stats = completion.stats
         if stats.nonfinite_points:
             self._warn("nonfinite", f"dropped {stats.nonfinite_points} non-finite point(s) of a cloud on "
@@ -293,6 +300,8 @@ class CompleterNode(Node):
             values["frames_paired" if key == "paired" else f"drop_{key}"] = n
         clouds, boxes = self.sync.pending
         values["pending_clouds"], values["pending_boxes"] = clouds, boxes
+        if self.completer.fusion is not None:
+            values.update(self.completer.fusion.counters)
         return values
 
     def _publish_diagnostics(self) -> None:

@@ -11,6 +11,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 
 from gd_completion.box_messages import parse_class_map
 from gd_completion.errors import BoxError, GDCompletionError
+from gd_completion.fusion import FusionLimits
 from gd_completion.limits import FrameLimits
 from gd_completion.pipeline import LABEL_IDS
 from gd_completion.stamp_sync import SYNC_MAX_WAIT_S, SYNC_QUEUE_SIZE, SYNC_TOLERANCE_S
@@ -44,6 +45,11 @@ class CompleterParams:
     queue_size: int
     include_input_points: bool
     limits: FrameLimits
+    track_fusion: bool
+    publish_fused_points: bool
+    fusion_max_tracks: int
+    fusion_max_points: int
+    fusion_expiry: float
 
 
 def _int(lo: int, hi: int) -> dict[str, Any]:
@@ -55,6 +61,7 @@ def _float(lo: float, hi: float) -> dict[str, Any]:
 
 
 _LIMITS = FrameLimits()
+_FUSION = FusionLimits()
 # name -> (default, description, range keyword arguments of ParameterDescriptor)
 PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "cloud_topic": ("points", "Input sensor_msgs/PointCloud2 topic (sensor-data QoS).", {}),
@@ -108,6 +115,17 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                           _int(1, 1000000000)),
     "time_budget": (_LIMITS.time_budget_s, "Seconds of completion per frame; vehicles not started by then are "
                                            "skipped (time_budget), nearest first.", _float(0.01, 3600.0)),
+    # track fusion (gd_completion.fusion): complete each tracked vehicle (box id = track id) from all its frames
+    "track_fusion": (False, "Complete each tracked vehicle from its points of all frames so far (box id = track "
+                            "id), in its box frame.", {}),
+    "publish_fused_points": (False, "With track_fusion, publish a vehicle's fused measured points (generated=0) "
+                                    "instead of the frame's own.", {}),
+    "fusion_max_tracks": (_FUSION.max_tracks, "Tracks kept at most; the least recently seen is dropped beyond it.",
+                          _int(1, 100000)),
+    "fusion_max_points": (_FUSION.max_points_per_track, "Fused points kept per track at most (oldest frames "
+                                                        "dropped first).", _int(100, 10000000)),
+    "fusion_expiry": (_FUSION.expiry_s, "Seconds (stamp time) after which a track not seen is dropped.",
+                      _float(0.05, 3600.0)),
 }
 LIMIT_PARAMETERS = {"max_boxes": "max_boxes", "max_box_length": "max_box_length", "max_box_width": "max_box_width",
                     "max_box_height": "max_box_height", "min_box_length": "min_box_length",

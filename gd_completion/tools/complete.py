@@ -81,12 +81,22 @@ class CompletionSummary:
         self.nonfinite_points += stats.nonfinite_points
 
 
+def start_fusion(pool: FramePool, publish_fused_points: bool) -> None:
+    """Give the pool's in-process completer a fresh track accumulator (one per bag)."""
+    from gd_completion.fusion import TrackFusion
+
+    if pool.completer is None:
+        raise BagError("track fusion needs every frame of a bag in order in one process: use --workers 1")
+    pool.completer.fusion = TrackFusion()
+    pool.completer.publish_fused_points = publish_fused_points
+
+
 def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = None,
                  boxes_topic: str | None = None, output_topic: str | None = None, model: str | None = None,
                  storage: str = "mcap", completer: Any = None, overwrite: bool = False,
                  progress: bool = True, workers: int = 1, sync_tolerance: float = SYNC_TOLERANCE_S,
-                 skip_unknown_types: bool = False, pool: FramePool | None = None,
-                 **completer_options: Any) -> CompletionSummary:
+                 skip_unknown_types: bool = False, pool: FramePool | None = None, track_fusion: bool = False,
+                 publish_fused_points: bool = False, **completer_options: Any) -> CompletionSummary:
     """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message.
 
     Clouds and boxes are paired as the node pairs them (stamps within `sync_tolerance` seconds); a cloud the
@@ -98,6 +108,9 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
     `workers=1`. A `pool` given is used (and left open) instead of one made from `workers`, `model`,
     `completer_options` and `completer`, so many bags can share it. The bag's metadata records the package
     version, the model's SHA-256 and the parameters.
+    `track_fusion`: each tracked vehicle (box id = track id) is completed from its points of all the bag's
+    frames so far (a fresh `fusion.TrackFusion` per bag; frames in order, so in this process only);
+    `publish_fused_points` writes the fused measured points instead of each frame's own.
     A topic of a type with no stored definition and unknown here cannot be copied: BagError, unless
     `skip_unknown_types`, which leaves it out with a warning on stderr (counted in `summary.not_copied`).
     """
@@ -130,13 +143,16 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                   progress_bar("complete", "frames", total=total, quiet=not progress) as bar):
                 conns = {conn.id: copy_connection(writer, conn, src) for conn in copied}
                 out_conn = add_connection(writer, output_topic, POINTCLOUD2)
+                if track_fusion:
+                    start_fusion(pool, publish_fused_points)
 
                 def submit(decided: list[tuple[RecordedCloud, Any]]) -> None:
                     """Submit the clouds whose boxes are known (or known to be none)."""
                     for cloud, box_set in decided:
                         boxes, wrong_frame = cloud.boxes_in_frame(box_set)
                         summary.boxes_wrong_frame += wrong_frame
-                        queue.start(waiting.pop(cloud.index), pool.submit(read_xyz(cloud.msg), boxes))
+                        queue.start(waiting.pop(cloud.index), pool.submit(read_xyz(cloud.msg), boxes,
+                                                                          cloud.stamp_ns if track_fusion else None))
 
                 def write(ready: Any) -> None:
                     """Copies as they are; a completion right after its cloud, with its header and bag time."""
@@ -207,7 +223,8 @@ def _run(args: argparse.Namespace) -> int:
                                boxes_topic=args.boxes_topic, output_topic=args.output_topic, model=args.model,
                                storage=args.storage, overwrite=args.overwrite, progress=not args.quiet,
                                workers=workers, sync_tolerance=args.sync_tolerance,
-                               skip_unknown_types=args.skip_unknown_types, **options)
+                               skip_unknown_types=args.skip_unknown_types, track_fusion=args.track_fusion,
+                               publish_fused_points=args.publish_fused_points, **options)
         print(f"wrote {args.output}: {summary.text()}")
         return 0
     if many.is_single_bag(args.input):  # --engine ray on one bag: OUTPUT is still the output bag
@@ -222,7 +239,8 @@ def _run(args: argparse.Namespace) -> int:
         jobs, engine=args.engine, workers=workers, model=args.model, address=args.address,
         overwrite=args.overwrite, progress=not args.quiet, report=many.print_line, completer_options=options,
         cloud_topic=args.cloud_topic, boxes_topic=args.boxes_topic, output_topic=args.output_topic,
-        storage=args.storage, sync_tolerance=args.sync_tolerance, skip_unknown_types=args.skip_unknown_types)
+        storage=args.storage, sync_tolerance=args.sync_tolerance, skip_unknown_types=args.skip_unknown_types,
+        track_fusion=args.track_fusion, publish_fused_points=args.publish_fused_points)
     for outcome in outcomes:
         if outcome.status == "skipped":
             many.print_line(outcome)
@@ -271,6 +289,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--address", default=None,
                         help="with --engine ray: the Ray cluster ('auto', 'HOST:6379' or 'ray://HOST:10001'; "
                              "default: start a local Ray with --workers CPUs)")
+    parser.add_argument("--track-fusion", action="store_true",
+                        help="complete each tracked vehicle (box id = track id) from its points of all frames so "
+                        "far, as the node's track_fusion (frames in order: --workers 1)")
+    parser.add_argument("--publish-fused-points", action="store_true",
+                        help="with --track-fusion, write the fused measured points instead of each frame's own")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of completion per frame, as the node's time_budget (default: none offline, so "
                         "the output never depends on the machine's load)")

@@ -1,0 +1,190 @@
+"""Track fusion: each tracked vehicle's points from all of its frames, accumulated in its own box frame.
+
+A vehicle's points are kept per frame in metres in the box frame of that frame's box (centred on the box,
+rotated by -yaw, not divided by the length), so a later box of a slightly different length does not
+rescale old points. `TrackFusion.update` returns each vehicle with the track's fused partial in the
+current box's normalised frame (divided by the current length, as `geometry.normalize` does): the
+network sees every side the track has shown so far.
+
+Bounds: every frame is voxel-downsampled (one point per `voxel_size` voxel and frame; the pipeline
+resamples the network input to its fixed size anyway, so this only bounds memory and the resampling
+work), whole oldest frames are dropped beyond `max_points_per_track` or `max_frames_per_track`, the least
+recently seen tracks are evicted beyond `max_tracks`, and tracks unseen for `expiry_s` (stamp time) expire.
+
+Box jitter is not corrected: tracked or annotated boxes are used as given, with no alignment (no ICP)
+between frames, so a box that jitters by a few centimetres blurs the fused partial by as much. A box
+whose length, width or height jumps by more than `size_change` (relative) starts the track afresh: the
+detector reused the id for another object. Vehicles with a negative instance id (no track) and repeats
+of an id within one frame are passed through unfused.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict, deque
+from collections.abc import Sequence
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from gd_completion.geometry import Box3D, denormalize
+from gd_completion.preprocess import CroppedVehicle
+
+__all__ = ["FusionLimits", "TrackFusion", "voxel_downsample"]
+
+
+@dataclass(frozen=True)
+class FusionLimits:
+    """Bounds of the track fusion (per track and in the number of tracks)."""
+
+    max_tracks: int = 256               # tracks kept at most; the least recently seen is evicted beyond it
+    max_points_per_track: int = 20_000  # fused points per track at most (oldest frames dropped first)
+    max_frames_per_track: int = 100     # frames per track at most (oldest dropped)
+    voxel_size: float = 0.02            # metres in the box frame: one point per voxel and frame
+    expiry_s: float = 3.0               # a track not seen for this long (stamp time) is dropped
+    size_change: float = 0.25           # relative change of the box length, width or height that resets a
+                                        # track (a detector reused the id for another object)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type == "int" and (isinstance(value, bool) or int(value) != value):
+                raise ValueError(f"FusionLimits.{f.name}={value!r} must be an integer")
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"FusionLimits.{f.name}={value!r} must be positive and finite")
+
+
+def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """The first point (in input order) of each `voxel_size` voxel of `points` (M, 3), order kept."""
+    if len(points) == 0:
+        return points
+    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel_size)   # integer-valued, no overflow
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+class _Track:
+    """One track: its last box and stamp, its frames (newest last) in metres in the box frame."""
+
+    __slots__ = ("box", "frames", "last_ns", "points")
+
+    def __init__(self, box: Box3D, stamp_ns: int) -> None:
+        self.box = box
+        self.last_ns = stamp_ns
+        self.frames: deque[np.ndarray] = deque()
+        self.points = 0
+
+    def add(self, metres: np.ndarray, limits: FusionLimits) -> None:
+        if len(metres) > limits.max_points_per_track:   # one frame alone over the bound: evenly thinned
+            keep = np.linspace(0, len(metres) - 1, limits.max_points_per_track).round().astype(np.intp)
+            metres = metres[keep]
+        self.frames.append(metres)
+        self.points += len(metres)
+        while len(self.frames) > 1 and (self.points > limits.max_points_per_track
+                                        or len(self.frames) > limits.max_frames_per_track):
+            self.points -= len(self.frames.popleft())
+
+    def fused_normalized(self) -> np.ndarray:
+        """(P, 3) float32: every frame's points, most recent frame first, divided by the current length."""
+        metres = np.concatenate(list(reversed(self.frames))) if self.frames else np.zeros((0, 3), np.float32)
+        return (metres.astype(np.float64) / self.box.size[0]).astype(np.float32)
+
+
+def _size_jump(old: Box3D, new: Box3D, limit: float) -> bool:
+    return any(abs(n - o) > limit * o for o, n in zip(old.size, new.size))
+
+
+class TrackFusion:
+    """Per-track accumulator of a vehicle's points in its own box frame (metres: centred on the box, rotated
+    by -yaw, NOT divided by the length), bounded per track and in the number of tracks.
+
+    Thread-safe (one lock); meant to see the frames of one stream in stamp order. A stamp earlier than the
+    latest seen (a replay restarted) drops every track, counted as expired.
+    """
+
+    def __init__(self, limits: FusionLimits | None = None) -> None:
+        self.limits = limits or FusionLimits()
+        self._tracks: OrderedDict[int, _Track] = OrderedDict()   # least recently seen first
+        self._latest_ns: int | None = None
+        self._lock = threading.Lock()
+        self._expired = 0
+        self._reset = 0
+        self._evicted = 0
+
+    def update(self, stamp_ns: int, vehicles: Sequence[CroppedVehicle]) -> list[CroppedVehicle]:
+        """Add each vehicle (keyed by `box.instance_id`) to its track; return, in the same order, the vehicles
+        with `normalized` the track's fused partial in the current box's normalised frame (most recent frame
+        first). `measured` and `box` stay the current frame's."""
+        stamp_ns = int(stamp_ns)
+        with self._lock:
+            self._restart_if_time_went_back(stamp_ns)
+            out: list[CroppedVehicle] = []
+            seen: set[int] = set()
+            for vehicle in vehicles:
+                key = vehicle.box.instance_id
+                if key < 0 or key in seen:
+                    out.append(vehicle)
+                    continue
+                seen.add(key)
+                out.append(replace(vehicle, normalized=self._add(stamp_ns, vehicle)))
+            return out
+
+    def _add(self, stamp_ns: int, vehicle: CroppedVehicle) -> np.ndarray:
+        key, box = vehicle.box.instance_id, vehicle.box
+        track = self._tracks.pop(key, None)
+        if track is not None and stamp_ns - track.last_ns > self.limits.expiry_s * 1e9:
+            self._expired += 1
+            track = None
+        elif track is not None and _size_jump(track.box, box, self.limits.size_change):
+            self._reset += 1
+            track = None
+        if track is None:
+            track = _Track(box, stamp_ns)
+        track.box, track.last_ns = box, stamp_ns
+        metres = np.asarray(vehicle.normalized, dtype=np.float32).reshape(-1, 3) * np.float32(box.size[0])
+        track.add(voxel_downsample(metres, self.limits.voxel_size), self.limits)
+        self._tracks[key] = track
+        fused = track.fused_normalized()
+        while len(self._tracks) > self.limits.max_tracks:
+            self._tracks.popitem(last=False)
+            self._evicted += 1
+        return fused
+
+    def _restart_if_time_went_back(self, stamp_ns: int) -> int:
+        """Drop every track when `stamp_ns` is earlier than the latest stamp seen; returns how many."""
+        dropped = 0
+        if self._latest_ns is not None and stamp_ns < self._latest_ns:
+            dropped = len(self._tracks)
+            self._expired += dropped
+            self._tracks.clear()
+        self._latest_ns = stamp_ns
+        return dropped
+
+    def fused_measured(self, vehicle: CroppedVehicle) -> np.ndarray:
+        """(P, 3) float32: the track's fused points in the cloud frame of `vehicle.box` (the current box), for
+        publishing. A vehicle without a track (no id, evicted, box not the track's latest) gives its own
+        `normalized` points denormalised."""
+        with self._lock:
+            track = self._tracks.get(vehicle.box.instance_id)
+            if track is not None and track.box == vehicle.box:
+                return denormalize(track.fused_normalized(), vehicle.box)
+        return denormalize(np.asarray(vehicle.normalized, dtype=np.float32).reshape(-1, 3), vehicle.box)
+
+    def expire(self, now_ns: int) -> int:
+        """Drop the tracks unseen for more than `expiry_s` before `now_ns`; returns how many."""
+        now_ns = int(now_ns)
+        with self._lock:
+            dropped = self._restart_if_time_went_back(now_ns)
+            horizon = self.limits.expiry_s * 1e9
+            stale = [k for k, t in self._tracks.items() if now_ns - t.last_ns > horizon]
+            for key in stale:
+                del self._tracks[key]
+            self._expired += len(stale)
+            return dropped + len(stale)
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Tracks alive now, and tracks expired, reset (size jump) and evicted (over `max_tracks`) so far."""
+        with self._lock:
+            return {"tracks_alive": len(self._tracks), "tracks_expired": self._expired,
+                    "tracks_reset": self._reset, "tracks_evicted": self._evicted}

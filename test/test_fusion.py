@@ -1,0 +1,227 @@
+"""Track fusion: a tracked vehicle's points from all of its frames, bounded per track and in tracks."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gd_completion.fusion import FusionLimits, TrackFusion, voxel_downsample
+from gd_completion.geometry import Box3D, normalize
+from gd_completion.model import GGDNet
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.pipeline import VehicleCompleter
+from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
+
+SIZE = (4.5, 1.8, 1.5)
+SIDES = ("front", "left", "rear", "right", "top")
+SECOND = 1_000_000_000
+
+
+def side_points(side: str, spacing: float, offset: float) -> np.ndarray:
+    """A grid of points (box frame, metres, `SIZE` box) on one side, `spacing` apart, shifted by `offset`."""
+    half = np.array(SIZE) / 2
+    axis = {"front": 0, "rear": 0, "left": 1, "right": 1, "top": 2}[side]
+    sign = -1.0 if side in ("rear", "right") else 1.0
+    free = [a for a in range(3) if a != axis]
+    grids = [np.arange(-half[a] + 0.01 + offset, half[a] - 0.01, spacing) for a in free]
+    u, v = np.meshgrid(*grids, indexing="ij")
+    out = np.empty((u.size, 3))
+    out[:, free[0]], out[:, free[1]], out[:, axis] = u.ravel(), v.ravel(), sign * half[axis]
+    return out
+
+
+def to_cloud(local: np.ndarray, box: Box3D) -> np.ndarray:
+    c, s = math.cos(box.yaw), math.sin(box.yaw)
+    return (local @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) + box.center).astype(np.float32)
+
+
+def moving_track(frames: int = 10, spacing: float = 0.08, iid: int = 5) -> list[tuple[np.ndarray, Box3D]]:
+    """A box-shaped car driving along a left-hand curve, each frame seeing another side: (points, box)."""
+    rng = np.random.default_rng(1)
+    out = []
+    for k in range(frames):
+        yaw = 0.15 * k
+        box = Box3D((8.0 + 1.5 * k * math.cos(yaw), -3.0 + 1.5 * k * math.sin(yaw), -0.8), SIZE, yaw, "car", iid)
+        local = side_points(SIDES[k % len(SIDES)], spacing, float(rng.uniform(0, spacing / 2)))
+        out.append((to_cloud(local, box), box))
+    return out
+
+
+def vehicle(iid: int, metres: np.ndarray, size: tuple[float, float, float] = SIZE) -> CroppedVehicle:
+    """A CroppedVehicle at the origin (yaw 0) from box-frame points in metres."""
+    box = Box3D((0.0, 0.0, 0.0), size, 0.0, "car", iid)
+    metres = np.asarray(metres, np.float32)
+    return CroppedVehicle(box, metres, normalize(metres, box))
+
+
+def distinct(n: int, start: float = 0.0) -> np.ndarray:
+    """n points 5 cm apart along x (each its own 2 cm voxel)."""
+    pts = np.zeros((n, 3), np.float32)
+    pts[:, 0] = start + 0.05 * np.arange(n)
+    return pts
+
+
+def side_of(metres: np.ndarray) -> np.ndarray:
+    """Index into SIDES of the side each box-frame point (metres) lies on."""
+    half = np.array(SIZE) / 2
+    on = np.isclose(metres, half, atol=1e-3), np.isclose(metres, -half, atol=1e-3)
+    return np.select([on[0][:, 0], on[0][:, 1], on[1][:, 0], on[1][:, 1], on[0][:, 2]], range(5), -1)
+
+
+def test_limits_are_validated() -> None:
+    FusionLimits()
+    for bad in ({"max_tracks": 0}, {"max_points_per_track": -1}, {"voxel_size": math.nan},
+                {"expiry_s": math.inf}, {"size_change": 0.0}, {"max_frames_per_track": 2.5}):
+        with pytest.raises(ValueError):
+            FusionLimits(**bad)
+
+
+def test_moving_vehicle_fuses_every_side() -> None:
+    prep = Preprocessing(ground_clearance=0.0)
+    fusion = TrackFusion()
+    singles: list[np.ndarray] = []
+    for k, (points, box) in enumerate(moving_track()):
+        vehicles, too_few = crop_vehicles(points, [box], prep)
+        assert not too_few and len(vehicles[0].measured) == len(points)
+        singles.append(vehicles[0].normalized)
+        (fused,) = fusion.update(k * SECOND // 10, vehicles)
+        assert fused.box is box and fused.measured is vehicles[0].measured
+        expected = np.concatenate(singles[::-1])          # union of every frame, most recent first
+        np.testing.assert_allclose(fused.normalized, expected, rtol=0, atol=1e-6)
+        assert fused.normalized.dtype == np.float32
+    sides = set(side_of(fused.normalized * SIZE[0]))
+    assert sides == set(range(5))                         # every visible side
+    assert all(len(set(side_of(s * SIZE[0]))) == 1 for s in singles)
+    # The fused points lie on the current (last) box in the cloud frame.
+    cloud = fusion.fused_measured(fused)
+    assert cloud.shape == fused.normalized.shape and cloud.dtype == np.float32
+    local = normalize(cloud, box).astype(np.float64) * SIZE[0]
+    assert np.all(np.abs(np.abs(local) / (np.array(SIZE) / 2)).max(axis=1) == pytest.approx(1.0, abs=1e-4))
+    np.testing.assert_array_equal(side_of(local), side_of(fused.normalized * SIZE[0]))
+    assert fusion.counters == {"tracks_alive": 1, "tracks_expired": 0, "tracks_reset": 0, "tracks_evicted": 0}
+
+
+def test_voxel_downsampling_keeps_first_point_per_voxel() -> None:
+    pts = np.array([[0.001, 0, 0], [0.5, 0, 0], [0.015, 0.005, 0.0], [0.021, 0, 0], [0.51, 0, 0]], np.float32)
+    np.testing.assert_array_equal(voxel_downsample(pts, 0.02), pts[[0, 1, 3]])
+    assert voxel_downsample(np.zeros((0, 3), np.float32), 0.02).shape == (0, 3)
+    (fused,) = TrackFusion().update(0, [vehicle(1, pts)])
+    np.testing.assert_allclose(fused.normalized * SIZE[0], pts[[0, 1, 3]], atol=1e-6)
+    # Frames are downsampled each on their own: the same points again are kept again.
+    (fused,) = TrackFusion(FusionLimits(voxel_size=1.0)).update(0, [vehicle(1, pts)])
+    assert len(fused.normalized) == 1
+
+
+def test_points_bound_drops_oldest_frames() -> None:
+    fusion = TrackFusion(FusionLimits(max_points_per_track=100))
+    frames = [distinct(30, start=2.0 * k) for k in range(5)]
+    for k, pts in enumerate(frames):
+        (fused,) = fusion.update(k, [vehicle(1, pts)])
+    np.testing.assert_allclose(fused.normalized * SIZE[0], np.concatenate(frames[:-4:-1]), atol=1e-6)
+    # One frame alone over the bound is thinned evenly to it.
+    (fused,) = fusion.update(10, [vehicle(2, distinct(250))])
+    assert len(fused.normalized) == 100
+    np.testing.assert_allclose(fused.normalized[[0, -1]] * SIZE[0], distinct(250)[[0, -1]], atol=1e-6)
+
+
+def test_frames_bound_drops_oldest_frames() -> None:
+    fusion = TrackFusion(FusionLimits(max_frames_per_track=3))
+    frames = [distinct(4, start=2.0 * k) for k in range(6)]
+    for k, pts in enumerate(frames):
+        (fused,) = fusion.update(k, [vehicle(1, pts)])
+        assert len(fused.normalized) == 4 * min(k + 1, 3)
+    np.testing.assert_allclose(fused.normalized * SIZE[0], np.concatenate(frames[:-4:-1]), atol=1e-6)
+
+
+def test_tracks_bound_evicts_least_recently_seen() -> None:
+    fusion = TrackFusion(FusionLimits(max_tracks=2))
+    fusion.update(0, [vehicle(1, distinct(3)), vehicle(2, distinct(3))])
+    fusion.update(1, [vehicle(1, distinct(3, 1.0))])
+    fusion.update(2, [vehicle(3, distinct(3))])            # 2 is the least recently seen
+    assert fusion.counters["tracks_evicted"] == 1 and fusion.counters["tracks_alive"] == 2
+    (again,) = fusion.update(3, [vehicle(2, distinct(5))])  # a fresh track; 1 (seen at 1) goes
+    assert len(again.normalized) == 5
+    (one,) = fusion.update(4, [vehicle(1, distinct(2))])
+    assert len(one.normalized) == 2                          # 1 was evicted: fresh too
+    assert fusion.counters == {"tracks_alive": 2, "tracks_expired": 0, "tracks_reset": 0, "tracks_evicted": 3}
+
+
+def test_expiry_by_stamp() -> None:
+    fusion = TrackFusion(FusionLimits(expiry_s=1.0))
+    fusion.update(0, [vehicle(1, distinct(3))])
+    fusion.update(SECOND // 2, [vehicle(2, distinct(3))])
+    assert fusion.expire(SECOND) == 0                        # exactly expiry_s: still alive
+    assert fusion.expire(12 * SECOND // 10) == 1
+    assert fusion.counters["tracks_alive"] == 1 and fusion.counters["tracks_expired"] == 1
+    # A stale track met again before `expire` ran starts afresh.
+    (fused,) = fusion.update(3 * SECOND, [vehicle(2, distinct(4, 1.0))])
+    assert len(fused.normalized) == 4 and fusion.counters["tracks_expired"] == 2
+    # A stamp going back (a replay restarted) drops every track.
+    (fused,) = fusion.update(SECOND, [vehicle(2, distinct(2))])
+    assert len(fused.normalized) == 2 and fusion.counters["tracks_expired"] == 3
+
+
+def test_size_jump_resets_track_small_change_keeps_metres() -> None:
+    fusion = TrackFusion()
+    old = distinct(3)
+    fusion.update(0, [vehicle(1, old)])
+    bigger = (SIZE[0] * 1.1, SIZE[1], SIZE[2])               # 10 %: the same vehicle, a refined box
+    new = distinct(2, 1.0)
+    (fused,) = fusion.update(1, [vehicle(1, new, bigger)])
+    np.testing.assert_allclose(fused.normalized, np.concatenate([new, old]) / bigger[0], atol=1e-6)
+    assert fusion.counters["tracks_reset"] == 0
+    other = (bigger[0], bigger[1], bigger[2] * 1.3)          # 30 % taller: another object with the same id
+    (fused,) = fusion.update(2, [vehicle(1, distinct(4, 2.0), other)])
+    assert len(fused.normalized) == 4 and fusion.counters["tracks_reset"] == 1
+
+
+def test_untracked_and_repeated_ids_pass_through() -> None:
+    fusion = TrackFusion()
+    a, b, c = vehicle(-1, distinct(3)), vehicle(4, distinct(3)), vehicle(4, distinct(5))
+    out = fusion.update(0, [a, b, c])
+    assert out[0] is a and out[2] is c and out[1] is not b
+    assert fusion.counters["tracks_alive"] == 1
+    np.testing.assert_array_equal(fusion.fused_measured(a), a.measured)
+
+
+class Recording(torch.nn.Module):
+    """A GGDNet that keeps every input it is given."""
+
+    def __init__(self, model: GGDNet) -> None:
+        super().__init__()
+        self.model = model
+        self.config = model.config
+        self.inputs: list[torch.Tensor] = []
+
+    def forward(self, x: torch.Tensor):
+        self.inputs.append(x.detach().clone())
+        return self.model(x)
+
+
+def test_pipeline_completes_a_track_from_its_fused_partial() -> None:
+    model = Recording(load_model(DEFAULT_WEIGHTS))
+    prep = Preprocessing(ground_clearance=0.0)
+    fusion = TrackFusion()
+    completer = VehicleCompleter(model, preprocessing=prep, fusion=fusion, publish_fused_points=True)
+    plain = VehicleCompleter(model, preprocessing=prep)
+    track = moving_track(frames=4, spacing=0.15)
+    assert sum(len(p) for p, _ in track) < model.config.num_input   # inputs repeat points: unique = fused
+    totals = []
+    for k, (points, box) in enumerate(track):
+        result = completer.complete_frame(points, [box], stamp_ns=k * SECOND // 10)
+        assert result.stats.completed == 1
+        seen = model.inputs[-1][0].numpy()
+        totals.append(len(np.unique(seen, axis=0)))
+        fused_cloud = result.points[result.generated == 0]
+        assert len(fused_cloud) == totals[-1]
+        local = normalize(fused_cloud, box).astype(np.float64) * SIZE[0]
+        assert len(set(side_of(local))) == k + 1                      # the published points: every side so far
+    assert totals == list(np.cumsum([len(p) for p, _ in track]))
+    # Without a stamp, or without fusion, the frame is completed from its own points: the same bytes.
+    points, box = track[-1]
+    a, b = completer.complete_frame(points, [box]), plain.complete_frame(points, [box])
+    for field in ("points", "instance_id", "label", "generated"):
+        assert getattr(a, field).tobytes() == getattr(b, field).tobytes()
+    assert fusion.counters["tracks_alive"] == 1
