@@ -254,7 +254,8 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     args = parser.parse_args(["evaluate", "--model", str(model_path), "--output", str(out),
                               "--synthetic-samples", "2", "--ablation-checkpoints", str(ablation), str(model_path),
                               "--pandaset", str(shared_data / "pandaset-002"), "--max-vehicles", "2",
-                              "--max-frames-per-vehicle", "2", "--threads", "1"])
+                              "--max-frames-per-vehicle", "2", "--threads", "1", "--fusion-max-vehicles", "1",
+                              "--fusion-max-frames", "3", "--fusion-consistency-frames", "3"])
     assert args.func(args) == 0
     assert seen == {"n": 2, "seed": synthetic.EVAL_SEED}
     text = (out / "report.md").read_text()
@@ -262,6 +263,7 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     assert "Metric floor: a second uniform 2048-point sample" in text
     assert "### Completeness by region" in text
     for heading in ("## Synthetic held-out set", "## Control-point ablation", "## PandaSet 002",
+                    "## PandaSet 002: track fusion", "Temporal consistency",
                     "Coverage error x1e3", "Fidelity x1e3", "GGD-Net", "mirror symmetry", "generation only"):
         assert heading in text and heading in printed
     ablation_rows = [line for line in text.splitlines() if line.startswith("| 32 ") or line.startswith("| 64 ")]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import time
 from pathlib import Path
 
@@ -20,6 +21,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
     from gd_completion.evaluation.pandaset_eval import evaluate_pandaset
     from gd_completion.evaluation.report import (
         ablation_section,
+        fusion_section,
         pandaset_section,
         synthetic_section,
         write_renders,
@@ -84,6 +86,20 @@ def run_evaluation(args: argparse.Namespace) -> int:
         write_renders(out, "pandaset_vehicles.png", result.examples)
         steps = ", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items())
         timings.append(f"pandaset: {time.perf_counter() - t0:.1f} s ({steps})")
+        if args.no_fusion:
+            pass
+        elif importlib.util.find_spec("gd_completion.fusion") is None:
+            emit("## PandaSet 002: track fusion\n\nSkipped: gd_completion.fusion is not installed.")
+        else:
+            from gd_completion.evaluation.fusion_eval import evaluate_fusion
+
+            t0 = time.perf_counter()
+            fused = evaluate_fusion(model, pandaset, preprocessing=preprocessing, max_frames=args.fusion_max_frames,
+                                    consistency_frames=args.fusion_consistency_frames,
+                                    max_vehicles=args.fusion_max_vehicles, max_batch=args.max_batch)
+            emit(fusion_section(fused))
+            steps = ", ".join(f"{k} {v:.1f} s" for k, v in fused.seconds.items())
+            timings.append(f"fusion: {time.perf_counter() - t0:.1f} s ({steps})")
 
     timings.append(f"total {time.perf_counter() - start:.1f} s, {torch.get_num_threads()} torch threads")
     emit("## Run time\n\n" + "\n".join(f"- {t}" for t in timings))
@@ -114,6 +130,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--max-frames-per-vehicle", type=int, default=10,
                         help="evenly spaced input frames per vehicle (default 10; 0 = all)")
     parser.add_argument("--max-vehicles", type=int, default=None, help="first N stationary vehicles only")
+    parser.add_argument("--no-fusion", action="store_true", help="skip the PandaSet track-fusion part")
+    parser.add_argument("--fusion-max-frames", type=int, default=20,
+                        help="first N frames of each vehicle fed to the track fusion (default 20)")
+    parser.add_argument("--fusion-consistency-frames", type=int, default=10,
+                        help="first N frames of each vehicle in the consistency metric (default 10)")
+    parser.add_argument("--fusion-max-vehicles", type=int, default=None,
+                        help="first N stationary and N moving vehicles in the fusion part (default all)")
     parser.add_argument("--max-batch", type=int, default=32, help="vehicles per forward pass (default 32)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
     parser.set_defaults(func=run_evaluation)

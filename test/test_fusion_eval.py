@@ -1,0 +1,123 @@
+"""Track-fusion evaluation: the consistency metric by hand, a short PandaSet run with a tiny model, the command."""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from test_evaluation import TINY
+
+from gd_completion.evaluation import fusion_eval
+from gd_completion.model import GGDNet
+
+
+def _pts(*rows):
+    return np.array(rows, dtype=np.float32)
+
+
+class ConcatFusion:
+    """Test double of TrackFusion: every frame of a track so far, newest first (boxes of parked cars agree)."""
+
+    def __init__(self):
+        self.history = {}
+
+    def update(self, stamp_ns, vehicles):
+        out = []
+        for v in vehicles:
+            frames = self.history.setdefault(v.box.instance_id, [])
+            frames.insert(0, v.normalized)
+            out.append(replace(v, normalized=np.concatenate(frames)))
+        return out
+
+
+def test_consistency_hand_computed():
+    a = _pts([0, 0, 0], [1, 0, 0])
+    b = _pts([0, 0, 0], [0, 2, 0])
+    c = _pts([5, 5, 5], [6, 6, 6])
+    # frames 3 -> 4 consecutive: a->b 0.5, b->a 2.0 -> 2.5 ; 4 -> 6 is not a consecutive pair
+    assert fusion_eval.consistency([a, b, c], [3, 4, 6]) == pytest.approx([2.5])
+    # b -> c: b->c: (0,0,0)->(5,5,5) 75, (0,2,0)->(5,5,5) 59 -> 67 ; c->b: (5,5,5)->(0,2,0) 59, (6,6,6)->(0,2,0) 88
+    assert fusion_eval.consistency([a, b, c], [3, 4, 5]) == pytest.approx([2.5, 67 + 73.5])
+    assert fusion_eval.consistency([a, a], [1, 2]) == [0.0]
+    assert fusion_eval.consistency([a], [1]) == []
+
+
+def _fusions():
+    yield pytest.param(ConcatFusion, id="concat-double")
+    try:
+        from gd_completion.fusion import TrackFusion
+    except ModuleNotFoundError:
+        yield pytest.param(None, id="TrackFusion", marks=pytest.mark.skip("gd_completion.fusion not present"))
+    else:
+        yield pytest.param(TrackFusion, id="TrackFusion")
+
+
+@pytest.mark.parametrize("factory", list(_fusions()))
+def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
+    root = shared_data / "pandaset-002"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    torch.manual_seed(0)
+    result = fusion_eval.evaluate_fusion(GGDNet(TINY).eval(), root, frames=range(0, 8), max_frames=8,
+                                         consistency_frames=4, max_vehicles=2, fusion_factory=factory,
+                                         reference_points=1024)
+    assert result.n_stationary == 2 and result.max_frames == 8
+    rows = {r.k: r for r in result.coverage}
+    assert list(rows) == list(fusion_eval.FUSED_FRAMES)
+    assert rows[10].n_vehicles == 0 and math.isnan(rows[10].raw_fused)  # only 8 frames fused
+    for k in (1, 2, 5, 0):
+        r = rows[k]
+        assert r.n_vehicles >= 1
+        assert math.isfinite(r.raw_fused) and r.raw_fused >= 0
+        assert math.isfinite(r.fused_completion) and r.fused_completion > 0
+        if r.n_single:
+            assert math.isfinite(r.single_completion) and r.single_completion > 0
+    # one frame fused: the fused partial is that frame (TrackFusion voxel-thins it), both completions agree
+    tolerance = 1e-5 if factory is ConcatFusion else 0.1
+    assert rows[1].fused_completion_single == pytest.approx(rows[1].single_completion, rel=tolerance)
+    assert rows[1].ratio == pytest.approx(1.0, rel=tolerance)
+    # more frames of a parked car cover more of its aggregate
+    raw = [rows[k].raw_fused for k in (1, 2, 5, 0)]
+    assert raw[0] > raw[-1]
+    assert all(later <= earlier * 1.05 for earlier, later in zip(raw, raw[1:]))
+    if factory is ConcatFusion:
+        assert all(later <= earlier + 1e-9 for earlier, later in zip(raw, raw[1:]))  # supersets: never worse
+        assert raw[-1] == 0.0  # all 8 frames fused = the aggregate the reference is sampled from
+    stationary = result.consistency[0]
+    assert stationary.group == "stationary" and stationary.n_pairs >= 1
+    assert math.isfinite(stationary.single) and math.isfinite(stationary.fused) and stationary.single > 0
+
+
+def test_fusion_section_text():
+    from gd_completion.evaluation.report import fusion_section
+
+    cov = [fusion_eval.CoverageRow(k, 3, 2.0 / (k or 20), 0.5, 2, 0.3, 0.6) for k in fusion_eval.FUSED_FRAMES]
+    cons = [fusion_eval.ConsistencyRow("stationary", 3, 10, 0.8, 0.2),
+            fusion_eval.ConsistencyRow("moving", 2, 5, 1.0, 0.9)]
+    text = fusion_section(fusion_eval.FusionResult(cov, cons, 20, 10, None, 3, 2, {}))
+    assert "## PandaSet 002: track fusion" in text and "| all (<= 20) |" in text
+    assert "Target (a)/(c) <= 0.60 at k = 5: 0.500, met." in text
+    assert "stationary 0.250 (met), moving 0.900 (not met)" in text
+    assert "first 20 frames of each vehicle" in text and "first 10 frames" in text
+
+
+def test_evaluate_no_fusion_skips_the_section(tmp_path, shared_data):
+    import argparse
+
+    from gd_completion.model import save_checkpoint
+    from gd_completion.tools import evaluate
+
+    root = shared_data / "pandaset-002"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    model_path = save_checkpoint(tmp_path / "tiny.pt", GGDNet(TINY))
+    parser = argparse.ArgumentParser()
+    evaluate.register(parser.add_subparsers())
+    args = parser.parse_args(["evaluate", "--model", str(model_path), "--output", str(tmp_path / "out"),
+                              "--synthetic-samples", "0", "--pandaset", str(root), "--max-vehicles", "1",
+                              "--max-frames-per-vehicle", "1", "--no-fusion", "--threads", "1"])
+    assert args.func(args) == 0
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert "## PandaSet 002: single frame" in text and "track fusion" not in text
