@@ -58,6 +58,7 @@ def main() -> int:
     params = {"boxes_type": "marker", "track_fusion": "true", "fusion_expiry": "2.0"}
     with benchmark_session(params, "soak") as (node, client):
         start = time.monotonic()
+        stamp_base = client.next_stamp()
         last_turnover = start
         samples: list[tuple[float, float]] = []
         sent = 0
@@ -72,7 +73,7 @@ def main() -> int:
             boxes = [Box3D((r * math.cos(a + 0.01 * t), r * math.sin(a + 0.01 * t), 0.75), SIZE, a + 0.01 * t,
                            "car", ids[k]) for k, (r, a) in enumerate(slots)]
             points = np.concatenate([vehicle_points(b, rng) for b in boxes])
-            client.send(KittiFrame("soak", points, boxes))
+            client.send(KittiFrame("soak", points, boxes), stamp_base + int(t * 1e9))   # stamps follow the clock
             sent += 1
             if not samples or now - samples[-1][0] >= 10.0:
                 samples.append((now, node.peak_rss_mib(), node.rss_mib()))
