@@ -5,11 +5,10 @@ import math
 
 import numpy as np
 import pytest
-import torch
+from test_preprocess import Recording
 
 from gd_completion.fusion import FusionLimits, TrackFusion, voxel_downsample
 from gd_completion.geometry import Box3D, normalize
-from gd_completion.model import GGDNet
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.pipeline import VehicleCompleter
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
@@ -186,18 +185,6 @@ def test_untracked_and_repeated_ids_pass_through() -> None:
     np.testing.assert_array_equal(fusion.fused_measured(a), a.measured)
 
 
-class Recording(torch.nn.Module):
-    """A GGDNet that keeps every input it is given."""
-
-    def __init__(self, model: GGDNet) -> None:
-        super().__init__()
-        self.model = model
-        self.config = model.config
-        self.inputs: list[torch.Tensor] = []
-
-    def forward(self, x: torch.Tensor):
-        self.inputs.append(x.detach().clone())
-        return self.model(x)
 
 
 def test_pipeline_completes_a_track_from_its_fused_partial() -> None:

@@ -21,7 +21,7 @@ from .pandaset_eval import (
     PANDAR64,
     REFERENCE_POINTS,
     is_vehicle_class,
-    reference_sample,
+    multi_frame_reference,
     stationary_vehicles,
 )
 
@@ -59,6 +59,10 @@ class FusedTrack:
         return len(self.single[position]) >= min_points
 
 
+
+def _ratio(numerator: float, denominator: float) -> float:
+    return numerator / denominator if denominator > 0 else float("nan")
+
 @dataclass
 class CoverageRow:
     """Coverage error x1e3 after `k` fused frames (k = 0: all fused frames up to the cap), means over vehicles."""
@@ -74,7 +78,7 @@ class CoverageRow:
     @property
     def ratio(self) -> float:
         """Fused completion / single-frame completion on the same vehicle-frames."""
-        return self.fused_completion_single / self.single_completion if self.single_completion > 0 else float("nan")
+        return _ratio(self.fused_completion_single, self.single_completion)
 
 
 @dataclass
@@ -86,11 +90,10 @@ class ConsistencyRow:
     n_pairs: int
     single: float
     fused: float
+    ratio: float = field(init=False)   # fused / single-frame (smaller is more consistent)
 
-    @property
-    def ratio(self) -> float:
-        """Fused / single-frame (smaller is more consistent)."""
-        return self.fused / self.single if self.single > 0 else float("nan")
+    def __post_init__(self) -> None:
+        self.ratio = _ratio(self.fused, self.single)
 
 
 @dataclass
@@ -234,10 +237,10 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
         track = chosen[i]
         if not cover:
             continue
-        if len(track.frames) < 2:
+        reference = multi_frame_reference(track, reference_points)
+        if reference is None:
             single_only += 1
             continue
-        reference = reference_sample(track.aggregate(), reference_points, seed=track.instance_id)
         for k, p in cover:
             raw = float(coverage_error(reference, track.fused[p])) * COVERAGE_SCALE
             done = float(coverage_error(reference, fused_done[(i, p)])) * COVERAGE_SCALE

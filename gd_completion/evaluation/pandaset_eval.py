@@ -6,6 +6,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -112,6 +113,14 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
     return tracks
 
 
+def multi_frame_reference(track: VehicleTrack | Any, n: int = REFERENCE_POINTS) -> np.ndarray | None:
+    """The track's multi-frame aggregate (`aggregate()` of a track with `frames` and `instance_id`) sampled to
+    `n` near-uniform points (seeded by the track), or None for a vehicle seen in a single frame."""
+    if len(track.frames) < 2:
+        return None
+    return reference_sample(track.aggregate(), n, seed=track.instance_id)
+
+
 def reference_sample(points: np.ndarray, n: int = REFERENCE_POINTS, voxel: float = REFERENCE_VOXEL,
                      seed: int = 0) -> np.ndarray:
     """`n` points of an aggregate with near-uniform surface density: one random point per occupied voxel,
@@ -191,10 +200,10 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
         picks = track.input_frames(MIN_INPUT_POINTS, max_frames_per_vehicle)
         if not picks:
             continue
-        if len(track.points) < 2:
+        reference = multi_frame_reference(track, reference_points)
+        if reference is None:
             single_frame += 1
             continue
-        reference = reference_sample(track.aggregate(), reference_points, seed=track.instance_id)
         used += 1
         for k in picks:
             partials.append(track.points[k])
