@@ -39,6 +39,8 @@ def _in_worker(task: Callable[..., Any], *args: Any) -> Any:
 
 
 def _complete(completer: Any, points: np.ndarray, boxes: list[Box3D], stamp_ns: int | None) -> Any:
+    if stamp_ns is None:    # any object with complete_frame(points, boxes) serves (the stamp is for track fusion)
+        return completer.complete_frame(points, boxes)
     return completer.complete_frame(points, boxes, stamp_ns=stamp_ns)
 
 
