@@ -151,9 +151,6 @@ class CompleterNode(Node):
         """Validate the new values together with the others; apply them, or refuse with the reason."""
         values = {name: self.get_parameter(name).value for name in PARAMETERS}
         values.update({c.name: c.value for c in changes if c.name in PARAMETERS})
-        fixed = [c.name for c in changes if c.name not in LIVE_PARAMETERS and c.name in PARAMETERS]
-        if fixed:    # read-only parameters are refused by rclpy before this callback; kept as a guard
-            return SetParametersResult(successful=False, reason=f"{fixed} cannot change while the node runs")
         try:
             params = validate(values)
         except ParameterError as exc:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from gd_completion.atomic import refuse_existing
 from gd_completion.bags.messages import pointcloud2_msg
 from gd_completion.bags.pairing import BagPairing, RecordedCloud
 from gd_completion.bags.provenance import completer_parameters, provenance, set_provenance
@@ -228,9 +229,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"wrote {args.output}: {summary.text()}")
         return 0
     if many.is_single_bag(args.input):  # --engine ray on one bag: OUTPUT is still the output bag
+        refuse_existing(args.output, args.overwrite)
         jobs = [many.BagJob(Path(args.input[0]), Path(args.output))]
-        if jobs[0].out.exists() and not args.overwrite:
-            raise BagError(f"{args.output}: output exists (use --overwrite to replace it)")
     else:
         jobs = many.plan_jobs(args.input, args.output)
     workers = args.workers or (1 if args.address else os.cpu_count() or 1)
