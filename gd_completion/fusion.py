@@ -161,13 +161,8 @@ class TrackFusion:
         return dropped
 
     def fused_measured(self, vehicle: CroppedVehicle) -> np.ndarray:
-        """(P, 3) float32: the track's fused points in the cloud frame of `vehicle.box` (the current box), for
-        publishing. A vehicle without a track (no id, evicted, box not the track's latest) gives its own
-        `normalized` points denormalised."""
-        with self._lock:
-            track = self._tracks.get(vehicle.box.instance_id)
-            if track is not None and track.box == vehicle.box:
-                return denormalize(track.fused_normalized(), vehicle.box)
+        """(P, 3) float32: the points of a vehicle as `update` returned it (its track's fused partial, or its
+        own points when it has no track) back in the cloud frame of its box, for publishing."""
         return denormalize(np.asarray(vehicle.normalized, dtype=np.float32).reshape(-1, 3), vehicle.box)
 
     def expire(self, now_ns: int) -> int:
