@@ -19,7 +19,7 @@ from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask
 from gd_completion.limits import FrameLimits, screen_boxes
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
-from gd_completion.model.network import GGDNet
+from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles, network_input
 
 LABEL_IDS: dict[str, int] = {"car": 1, "van": 2, "truck": 3}
@@ -153,7 +153,7 @@ class VehicleCompleter:
         seconds before that) so that the first real frame is not the slow one."""
         rng = np.random.default_rng(0)
         cloud = (rng.random((self.num_input + 1, 3)) - 0.5) * np.array([1.0, 0.4, 0.35])
-        self.complete_normalized([cloud.astype(np.float32)])
+        self.complete_normalized([cloud.astype(np.float32)], [(4.5, 1.8, 1.6)])
 
     def close(self) -> None:
         """Stop the vehicle threads (idempotent)."""
@@ -187,28 +187,34 @@ class VehicleCompleter:
             stats.skip(vehicle.box, "too_many_points")
         return [v for v in vehicles if len(v.measured) <= self.limits.max_points_per_vehicle]
 
-    def complete_normalized(self, partials: Sequence[np.ndarray]) -> np.ndarray:
-        """Complete vehicles given in the normalised box frame; returns (B, num_output, 3) float32."""
+    def complete_normalized(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None = None
+                            ) -> np.ndarray:
+        """Complete vehicles given in the normalised box frame, their boxes' sizes (length, width, height)
+        beside them (needed by a box-conditioned model); returns (B, num_output, 3) float32."""
         if not len(partials):
             return np.zeros((0, self.num_output, 3), np.float32)
-        return np.stack(self._complete_all(partials, math.inf, None))
+        return np.stack(self._complete_all(partials, sizes, math.inf, None))
 
-    def _complete_all(self, partials: Sequence[np.ndarray], deadline: float, cancel: threading.Event | None
-                      ) -> list[np.ndarray | None]:
+    def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None,
+                      deadline: float, cancel: threading.Event | None) -> list[np.ndarray | None]:
         """Each vehicle's completion in order; None for those not started before `deadline` (time.monotonic)
         or after `cancel` was set."""
-        def one(partial: np.ndarray) -> np.ndarray | None:
+        if sizes is not None and len(sizes) != len(partials):
+            raise ValueError(f"{len(partials)} partial clouds but {len(sizes)} box sizes")
+
+        def one(item: tuple[np.ndarray, Sequence[float] | None]) -> np.ndarray | None:
             if time.monotonic() > deadline or (cancel is not None and cancel.is_set()):
                 return None
-            return self._complete_one(partial)
+            return self._complete_one(*item)
         run = self._pool.map if self._pool is not None else map
-        return list(run(one, partials))
+        return list(run(one, zip(partials, sizes if sizes is not None else [None] * len(partials))))
 
-    def _complete_one(self, partial: np.ndarray) -> np.ndarray:
+    def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None) -> np.ndarray:
         """Resample one vehicle to the network's input size and complete it (one task of the thread pool)."""
         cloud = torch.from_numpy(network_input(partial, self.num_input)).unsqueeze(0)
+        shape = box_shape([size]).to(self.device) if size is not None else None
         with torch.inference_mode():   # thread-local: set in the thread that runs the model
-            return self.model(cloud.to(self.device)).completion[0].float().cpu().numpy()
+            return self.model(cloud.to(self.device), shape).completion[0].float().cpu().numpy()
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],
                        cancel: threading.Event | None = None, stamp_ns: int | None = None) -> FrameCompletion:
@@ -226,7 +232,8 @@ class VehicleCompleter:
         if fusion is not None:
             fusion.expire(stamp_ns)
             vehicles = fusion.update(stamp_ns, vehicles)
-        completions = self._complete_all([v.normalized for v in vehicles], deadline, cancel)
+        completions = self._complete_all([v.normalized for v in vehicles], [v.box.size for v in vehicles],
+                                         deadline, cancel)
         done = []
         budget = self.limits.max_output_points
         for vehicle, completion in zip(vehicles, completions):

@@ -16,12 +16,13 @@ from .errors import CheckpointError, DataFormatError
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.config import GGDConfig
 from .model.losses import CD_SCALE, chamfer_l2, ggd_loss
-from .model.network import GGDNet
+from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
 
 log = logging.getLogger(__name__)
 
-ArrayPair = Sequence[Any]   # (partial (S, N, 3), complete (S, N_o, 3)) numpy arrays or tensors
+# (partial (S, N, 3), complete (S, N_o, 3)[, box sizes (S, 3)]) numpy arrays or tensors
+ArrayPair = Sequence[Any]
 
 
 @dataclass
@@ -66,28 +67,42 @@ def _as_tensor(a: Any, name: str) -> torch.Tensor:
     return t.contiguous()
 
 
-def _pairs(data: ArrayPair, name: str, cfg: GGDConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    if len(data) != 2:
-        raise DataFormatError(f"{name}: expected a (partial, complete) pair")
+def _pairs(data: ArrayPair, name: str, cfg: GGDConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """(partial, complete, box shapes (S, 2) or None) checked against `cfg`."""
+    if len(data) not in (2, 3):
+        raise DataFormatError(f"{name}: expected (partial, complete) or (partial, complete, box sizes)")
     partial, complete = _as_tensor(data[0], f"{name} partial"), _as_tensor(data[1], f"{name} complete")
+    shapes = None
+    if len(data) == 3 and data[2] is not None:
+        sizes = np.asarray(data[2], dtype=np.float32)
+        if sizes.shape != (partial.shape[0], 3) or not np.isfinite(sizes).all() or (sizes <= 0).any():
+            raise DataFormatError(f"{name}: box sizes must be ({partial.shape[0]}, 3) positive, "
+                                  f"got shape {sizes.shape}")
+        shapes = box_shape(sizes)
+    elif cfg.box_conditioning:
+        raise DataFormatError(f"{name}: a box-conditioned model needs the box sizes (partial, complete, sizes)")
     if partial.shape[0] != complete.shape[0] or partial.shape[0] == 0:
         raise DataFormatError(f"{name}: {partial.shape[0]} partial vs {complete.shape[0]} complete samples")
     if partial.shape[1] != cfg.num_input or complete.shape[1] != cfg.num_output:
         raise DataFormatError(f"{name}: expected partial (S, {cfg.num_input}, 3) and complete "
                               f"(S, {cfg.num_output}, 3), got {tuple(partial.shape)} and {tuple(complete.shape)}")
-    return partial, complete
+    return partial, complete, shapes
+
+
+def _rows(shapes: torch.Tensor | None, idx: Any, device: torch.device | str) -> torch.Tensor | None:
+    return shapes[idx].to(device) if shapes is not None else None
 
 
 @torch.inference_mode()
 def evaluate(model: GGDNet, partial: torch.Tensor, complete: torch.Tensor, batch_size: int,
-             device: str | torch.device) -> dict[str, float]:
+             device: str | torch.device, shapes: torch.Tensor | None = None) -> dict[str, float]:
     """Mean Chamfer (x1000) of P_o (`cd_completion`), of the generation branch P_g (`cd_generated`) and P_s."""
     was_training = model.training
     model.eval()
     sums = {"cd_completion": 0.0, "cd_generated": 0.0, "cd_coarse": 0.0}
     for s in range(0, partial.shape[0], batch_size):
         x, gt = partial[s:s + batch_size].to(device), complete[s:s + batch_size].to(device)
-        out = model(x)
+        out = model(x, _rows(shapes, slice(s, s + batch_size), device))
         sums["cd_completion"] += chamfer_l2(out.completion, gt).sum().item()
         sums["cd_generated"] += chamfer_l2(out.generated, gt).sum().item()
         sums["cd_coarse"] += chamfer_l2(out.coarse, gt).sum().item()
@@ -148,8 +163,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         fresh = warm_start(model, init_from, init_skip)
         log.info("warm start from %s: %d tensors copied, fresh: %s", init_from,
                  len(model.state_dict()) - len(fresh), ", ".join(fresh) or "none")
-    tr_x, tr_y = _pairs(train_data, "training data", config)
-    va_x, va_y = _pairs(val_data, "validation data", config)
+    tr_x, tr_y, tr_s = _pairs(train_data, "training data", config)
+    va_x, va_y, va_s = _pairs(val_data, "validation data", config)
     model.to(device).train()
     optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr)
     if optimizer_state is not None:
@@ -175,7 +190,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                 break
             idx = perm[s:s + settings.batch_size]
             x, gt = tr_x[idx].to(device), tr_y[idx].to(device)
-            losses = ggd_loss(model(x), gt, lam=lam, alpha=settings.alpha, beta=settings.beta)
+            losses = ggd_loss(model(x, _rows(tr_s, idx, device)), gt, lam=lam, alpha=settings.alpha,
+                              beta=settings.beta)
             optimizer.zero_grad(set_to_none=True)
             losses["total"].backward()
             if settings.max_grad_norm > 0:
@@ -191,7 +207,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             break
         record = {"epoch": epoch + 1, "lam": lam, "seconds": time.monotonic() - t0,
                   **{f"train_{k}": v / seen for k, v in sums.items()},
-                  **{f"val_{k}": v for k, v in evaluate(model, va_x, va_y, settings.batch_size, device).items()}}
+                  **{f"val_{k}": v for k, v in evaluate(model, va_x, va_y, settings.batch_size, device,
+                                                                     va_s).items()}}
         history.append(record)
         log.info("epoch %d/%d lam %.1f loss %.4f | val CD x1e3 completion %.4f generated %.4f | %.1fs%s",
                  epoch + 1, settings.epochs, lam, record["train_total"], record["val_cd_completion"],

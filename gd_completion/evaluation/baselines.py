@@ -6,7 +6,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from gd_completion.model.network import GGDNet
+from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import network_input
 
 # Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s).
@@ -47,29 +47,44 @@ def _resampled(clouds: Sequence[np.ndarray], n: int) -> np.ndarray:
     return np.stack([network_input(c, n) for c in clouds])
 
 
+def _shapes(sizes: np.ndarray | Sequence[Sequence[float]] | None, count: int) -> torch.Tensor | None:
+    """Box shapes (B, 2) of `count` clouds' box sizes (length, width, height); None without sizes."""
+    if sizes is None:
+        return None
+    shapes = box_shape(sizes)
+    if shapes.shape[0] != count:
+        raise ValueError(f"{count} clouds but {shapes.shape[0]} box sizes")
+    return shapes
+
+
 @torch.inference_mode()
-def generation_only(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
-    """GGD-Net generation-only branch `GGDNet.generate`: (N_o, 3) for one cloud, (B, N_o, 3) for several."""
+def generation_only(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray],
+                    sizes: np.ndarray | Sequence[Sequence[float]] | None = None) -> np.ndarray:
+    """GGD-Net generation-only branch `GGDNet.generate`: (N_o, 3) for one cloud, (B, N_o, 3) for several.
+    `sizes`: the boxes' (length, width, height), needed by a box-conditioned model."""
     batch, single = _as_batch(model, partial)
-    out = model.eval().generate(batch).float().numpy()
+    out = model.eval().generate(batch, _shapes(sizes, len(batch))).float().numpy()
     return out[0] if single else out
 
 
 @torch.inference_mode()
-def ggd_net(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
+def ggd_net(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray],
+            sizes: np.ndarray | Sequence[Sequence[float]] | None = None) -> np.ndarray:
     """Full GGD-Net `forward(...).completion`: (N_o, 3) for one cloud, (B, N_o, 3) for several."""
     batch, single = _as_batch(model, partial)
-    out = model.eval()(batch).completion.float().numpy()
+    out = model.eval()(batch, _shapes(sizes, len(batch))).completion.float().numpy()
     return out[0] if single else out
 
 
 @torch.inference_mode()
 def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
+                    sizes: np.ndarray | Sequence[Sequence[float]] | None = None,
                     max_batch: int = 32) -> tuple[np.ndarray, np.ndarray]:
     """(generation-only P_g, GGD-Net P_o), each (B, N_o, 3), from one batched forward per chunk.
 
-    Clouds of any size are resampled to `num_input` as in the pipeline. In eval mode P_g of the
-    forward pass equals `generate` (FPS is deterministic), so one pass serves both baselines.
+    Clouds of any size are resampled to `num_input` as in the pipeline; `sizes` (B, 3) are their boxes'
+    (length, width, height), needed by a box-conditioned model. In eval mode P_g of the forward pass
+    equals `generate` (FPS is deterministic), so one pass serves both baselines.
     """
     model = model.eval()
     if isinstance(partials, np.ndarray) and partials.ndim == 3 and partials.shape[1] == model.config.num_input:
@@ -77,9 +92,11 @@ def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
     else:
         batch = _resampled(list(partials), model.config.num_input) if len(partials) else np.zeros(
             (0, model.config.num_input, 3), np.float32)
+    shapes = _shapes(sizes, len(batch))
     generated, completion = [], []
     for start in range(0, len(batch), max_batch):
-        out = model(torch.from_numpy(np.ascontiguousarray(batch[start:start + max_batch])))
+        out = model(torch.from_numpy(np.ascontiguousarray(batch[start:start + max_batch])),
+                    shapes[start:start + max_batch] if shapes is not None else None)
         generated.append(out.generated.float().numpy())
         completion.append(out.completion.float().numpy())
     if not generated:

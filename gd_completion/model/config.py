@@ -38,6 +38,8 @@ class GGDConfig:
     gcn_width: int = 64
     gcn_blocks: int = 2
     offset_init_gain: float = 0.1                # small initial offsets: P_o starts near P_g
+    # conditioning on the box shape (width/length, height/length), a deviation from the paper (docs/MODEL.md)
+    box_conditioning: bool = False
 
     def __post_init__(self) -> None:
         for name in _TUPLE_FIELDS:

@@ -1,13 +1,22 @@
 """GGDNet: generation branch (multi-resolution encoder + tree decoder) and graph-guided deformation."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 from .config import GGDConfig
 from .ops import ball_group, farthest_point_sample, flat_index, gather_points, knn_graph, neighbour_mean
+
+
+def box_shape(sizes: Tensor | np.ndarray | Sequence[Sequence[float]]) -> Tensor:
+    """(B, 2) float32 box aspect (width / length, height / length) of box sizes (B, 3) = (length, width, height):
+    the box shape a box-conditioned GGDNet is given (the normalised frame divides by the length only)."""
+    sizes = torch.as_tensor(np.asarray(sizes, dtype=np.float32).reshape(-1, 3))
+    return sizes[:, 1:] / sizes[:, :1]
 
 
 class GGDOutput(NamedTuple):
@@ -67,15 +76,22 @@ class MultiResolutionEncoder(nn.Module):
             cin = w
         layers.append(nn.Linear(cin, cfg.code_dim))
         self.head = nn.Sequential(*layers)
+        # box shape enters the first layer of the head (zero at init: a warm start keeps its function)
+        self.box_in = nn.Linear(2, layers[0].out_features, bias=False) if cfg.box_conditioning else None
+        if self.box_in is not None:
+            nn.init.zeros_(self.box_in.weight)
 
-    def forward(self, partial: Tensor, order: Tensor) -> Tensor:
+    def forward(self, partial: Tensor, order: Tensor, shape: Tensor | None = None) -> Tensor:
         n = partial.shape[1]
         h0 = self.h0(partial)                      # point-wise, so h0(P_i) is a subset of h0(P)
         feats = []
         for frac, h1 in zip(self.fractions, self.h1):
             h = h0 if frac == 1 else gather_points(h0, order[:, : max(n // frac, 1)])
             feats += [h.amax(1), h1(h).amax(1)]
-        return self.head(torch.cat(feats, -1))
+        x = self.head[0](torch.cat(feats, -1))
+        if self.box_in is not None:
+            x = x + self.box_in(shape)
+        return self.head[1:](x)
 
 
 class TreeDecoder(nn.Module):
@@ -217,9 +233,12 @@ class GGDNet(nn.Module):
         self.local = LocalFeatures(self.config)
         self.deform = GResNet(self.config, self.local.out_dim)
 
-    def _check(self, partial: Tensor) -> None:
+    def _check(self, partial: Tensor, shape: Tensor | None) -> None:
         if partial.dim() != 3 or partial.shape[-1] != 3:
             raise ValueError(f"GGDNet expects partial clouds (B, N, 3), got {tuple(partial.shape)}")
+        if self.config.box_conditioning and (shape is None or tuple(shape.shape) != (partial.shape[0], 2)):
+            raise ValueError("this GGDNet is box-conditioned: pass box_shape (B, 2) = (width, height) / length "
+                             f"(network.box_shape), got {None if shape is None else tuple(shape.shape)}")
         if partial.shape[1] < self.config.num_control:
             raise ValueError(f"GGDNet needs >= num_control={self.config.num_control} input points, "
                              f"got {partial.shape[1]}")
@@ -231,26 +250,36 @@ class GGDNet(nn.Module):
                       + [n // (s * s) for s in self.config.ball_scales if s > 1])
         return farthest_point_sample(partial, min(longest, n))
 
-    def _generate(self, partial: Tensor, order: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        if order is None:
-            self._check(partial)
-            order = self._order(partial)
+    def _shape(self, box_shape: Tensor | None, like: Tensor) -> Tensor | None:
+        """Box shape on the input's device and dtype; None (ignored) for a model without box conditioning."""
+        if not self.config.box_conditioning:
+            return None
+        return box_shape.to(like.device, like.dtype) if box_shape is not None else None
+
+    def _generate(self, partial: Tensor, order: Tensor, shape: Tensor | None
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         nc = self.config.num_control
-        code = self.encoder(partial, order)
+        code = self.encoder(partial, order, shape)
         coarse = self.decoder(code)
         control_index = order[:, :nc]
         control = gather_points(partial, control_index)
         return code, coarse, control, control_index, order
 
-    def generate(self, partial: Tensor) -> Tensor:
+    def _chunks(self, partial: Tensor, order: Tensor, shape: Tensor | None) -> list[tuple]:
+        """(partial, order, shape) per eval chunk of `eval_batch_chunk` clouds."""
+        step = self.eval_batch_chunk
+        shapes = shape.split(step) if shape is not None else [None] * len(partial.split(step))
+        return list(zip(partial.split(step), order.split(step), shapes))
+
+    def generate(self, partial: Tensor, box_shape: Tensor | None = None) -> Tensor:
         """Generation-only branch (ablation baseline): P_g = concat(P_c, P_s), (B, N_o, 3)."""
-        self._check(partial)
+        shape = self._shape(box_shape, partial)
+        self._check(partial, shape)
         order = self._order(partial)
         if not self.training and partial.shape[0] > self.eval_batch_chunk > 0:   # same chunks as forward
-            parts = [self._generate(c, o) for c, o in zip(partial.split(self.eval_batch_chunk),
-                                                          order.split(self.eval_batch_chunk))]
+            parts = [self._generate(*chunk) for chunk in self._chunks(partial, order, shape)]
             return torch.cat([torch.cat([p[2], p[1]], 1) for p in parts], 0)
-        _, coarse, control, _, _ = self._generate(partial, order)
+        _, coarse, control, _, _ = self._generate(partial, order, shape)
         return torch.cat([control, coarse], 1)
 
     # Eval mode runs the batch one cloud at a time after one batched FPS: per-cloud tensors stay in
@@ -259,17 +288,19 @@ class GGDNet(nn.Module):
     # rounding difference can flip a near-tie in the kNN / ball searches). 0 disables chunking.
     eval_batch_chunk: int = 1
 
-    def forward(self, partial: Tensor) -> GGDOutput:
-        self._check(partial)
+    def forward(self, partial: Tensor, box_shape: Tensor | None = None) -> GGDOutput:
+        """Complete `partial` (B, N, 3); a box-conditioned model also needs `box_shape` (B, 2) (`box_shape()`
+        of the boxes' sizes), which other models ignore."""
+        shape = self._shape(box_shape, partial)
+        self._check(partial, shape)
         order = self._order(partial)    # one FPS loop for the whole batch
         if not self.training and partial.shape[0] > self.eval_batch_chunk > 0:
-            parts = [self._forward(c, o) for c, o in zip(partial.split(self.eval_batch_chunk),
-                                                          order.split(self.eval_batch_chunk))]
+            parts = [self._forward(*chunk) for chunk in self._chunks(partial, order, shape)]
             return GGDOutput(*(torch.cat(ts, 0) for ts in zip(*parts)))
-        return self._forward(partial, order)
+        return self._forward(partial, order, shape)
 
-    def _forward(self, partial: Tensor, order: Tensor) -> GGDOutput:
-        code, coarse, control, control_index, order = self._generate(partial, order)
+    def _forward(self, partial: Tensor, order: Tensor, shape: Tensor | None) -> GGDOutput:
+        code, coarse, control, control_index, order = self._generate(partial, order, shape)
         b, nc = control.shape[:2]
         p_g = torch.cat([control, coarse], 1)
         knn = knn_graph(p_g, self.config.knn_k, self.config.knn_margin if self.config.window_search else None)
