@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -116,9 +117,17 @@ def mesh_files(directory: str | Path) -> list[Path]:
     return files
 
 
-def load_mesh_folder(directory: str | Path) -> list[Mesh]:
-    """Every mesh file of `directory` (sorted by name), each centred on its bounding box."""
-    return [load_mesh(p).centered() for p in mesh_files(directory)]
+#: Meshes of `../shared/data/vehicle-meshes` (file stems) never trained on: the held-out shapes of the evaluation.
+HELDOUT_MESHES: tuple[str, ...] = ("basic_simplecarshort", "basic_taxi", "public_schoolbus", "realistic_cop_suv",
+                                   "realistic_normalcar2", "realistic_sportscar2")
+
+
+def load_mesh_folder(directory: str | Path, *, exclude: Sequence[str] = (), only: Sequence[str] | None = None
+                     ) -> list[Mesh]:
+    """Mesh files of `directory` (sorted by name), each centred on its bounding box; file stems in `exclude`
+    are left out, and with `only` just those stems are read."""
+    return [load_mesh(p).centered() for p in mesh_files(directory)
+            if p.stem not in exclude and (only is None or p.stem in only)]
 
 
 def mesh_folder_digest(directory: str | Path) -> str:
