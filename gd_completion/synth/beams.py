@@ -43,7 +43,10 @@ _PANDAR64_AZ = (-1.042,) * 6 + tuple((1.042, 3.125, 5.208, -5.208, -3.125, -1.04
 # of 32 from -8.83 to -24.9 deg (~1/2 deg apart); the two blocks are interleaved in firing order.
 _HDL64E_ELEV = tuple(np.round(np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.9, 32)]), 4))
 
-PATTERN_NAMES = ("hdl64e", "pandar40", "pandar40p", "pandar64")
+# Velodyne HDL-32E (nuScenes): 32 lasers evenly from +10.67 to -30.67 deg (1.333 deg apart), 0.16 deg at 10 Hz.
+_HDL32E_ELEV = tuple(np.round(np.linspace(10.67, -30.67, 32), 4))
+
+PATTERN_NAMES = ("hdl64e", "pandar40", "pandar40p", "pandar64", "hdl32e")
 
 
 @dataclass(frozen=True)
@@ -72,7 +75,8 @@ class BeamPattern:
 
     @classmethod
     def named(cls, name: str) -> BeamPattern:
-        """Built-in pattern: "hdl64e" (KITTI, 10 Hz), "pandar40", "pandar40p", "pandar64" (10 Hz, 0.2 deg)."""
+        """Built-in pattern: "hdl64e" (KITTI, 10 Hz), "pandar40", "pandar40p", "pandar64" (10 Hz, 0.2 deg),
+        "hdl32e" (Velodyne HDL-32E, 10 Hz, 0.16 deg)."""
         key = name.lower().replace("-", "").replace("_", "")
         if key == "hdl64e":
             # KITTI records at 10 Hz: ~2080 firings per turn (0.08 deg is the 5 Hz figure of the data sheet).
@@ -83,6 +87,8 @@ class BeamPattern:
             return cls("pandar40p", tuple(e for e, _ in _PANDAR40P), tuple(a for _, a in _PANDAR40P), 0.2)
         if key == "pandar64":
             return cls("pandar64", _PANDAR64_ELEV, _PANDAR64_AZ, 0.2)
+        if key == "hdl32e":
+            return cls("hdl32e", _HDL32E_ELEV, (0.0,) * 32, 0.16)
         raise ValueError(f"unknown beam pattern {name!r}; expected one of {PATTERN_NAMES}")
 
     @classmethod

@@ -1,6 +1,7 @@
 """Training pairs: simulated partial scans of vehicles and their complete surfaces, normalised per box."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing
 import zipfile
@@ -15,16 +16,80 @@ from gd_completion.errors import DataFormatError
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.preprocess import Preprocessing, crop_vehicles, network_input
 from gd_completion.synth.lidar import BeamPattern, scan_meshes
-from gd_completion.synth.meshio import Mesh, load_mesh_folder, sample_surface
-from gd_completion.synth.vehicles import VEHICLE_KINDS, generate_vehicle, perturb_mesh, vehicle_label
+from gd_completion.synth.meshio import HELDOUT_MESHES, Mesh, load_mesh_folder, sample_surface
+from gd_completion.synth.vehicles import (
+    BASE_KINDS,
+    VEHICLE_KINDS,
+    WIDE_SIZE_SPREAD,
+    generate_vehicle,
+    perturb_mesh,
+    vehicle_label,
+)
 
-__all__ = ["GENERATOR_VERSION", "DEFAULT_PATTERNS", "make_sample", "build_dataset", "save_dataset", "load_dataset",
-           "sample_rng"]
+__all__ = ["GENERATOR_VERSION", "DEFAULT_PATTERNS", "SampleOptions", "V1_SAMPLING", "V2_SAMPLING", "make_sample",
+           "build_dataset", "save_dataset", "load_dataset", "sample_rng"]
 
-GENERATOR_VERSION = "gd_completion.synth/1"
+#: Version 2: mesh-backed data sets leave out meshio.HELDOUT_MESHES by default and SampleOptions exists;
+#: procedural samples with the default options (V1_SAMPLING) are those of version 1, bit for bit.
+GENERATOR_VERSION = "gd_completion.synth/2"
 DEFAULT_PATTERNS = ("hdl64e", "pandar64", "pandar40p")
 _SEED_TAG = 0x6D5A7E
 _POINT_KEYS = ("partial", "complete")
+
+
+@dataclasses.dataclass(frozen=True)
+class SampleOptions:
+    """What shapes a training pair beyond its size (see `make_sample`); defaults reproduce version 1 exactly.
+
+    kinds: procedural kinds drawn (uniformly) when a shape is procedural. patterns: beam patterns drawn
+    (uniformly) per sample. size_spread: widening of the kinds' size ranges (`vehicles.size_range`).
+    box_noise_prob: probability that the box used to crop and normalise is perturbed like a detector's:
+    centre N(0, box_center_sigma) in x and y and N(0, box_z_sigma) in z (m), each size axis times
+    1 + N(0, box_size_sigma), yaw + N(0, box_yaw_sigma_deg) degrees; the complete surface is normalised by
+    the same noisy box and `size` is the noisy box's size (the network completes in the frame it is given).
+    """
+
+    kinds: tuple[str, ...] = BASE_KINDS
+    patterns: tuple[str, ...] = DEFAULT_PATTERNS
+    size_spread: float = 0.0
+    box_noise_prob: float = 0.0
+    box_center_sigma: float = 0.15
+    box_z_sigma: float = 0.05
+    box_size_sigma: float = 0.05
+    box_yaw_sigma_deg: float = 4.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "kinds", tuple(self.kinds))
+        object.__setattr__(self, "patterns", tuple(self.patterns))
+        if not self.kinds or any(k not in VEHICLE_KINDS for k in self.kinds):
+            raise ValueError(f"SampleOptions.kinds: expected a non-empty subset of {VEHICLE_KINDS}, got {self.kinds}")
+        if not self.patterns:
+            raise ValueError("SampleOptions.patterns: need at least one beam pattern")
+        for name in self.patterns:
+            BeamPattern.named(name)  # fail early on a bad name
+        if not 0.0 <= self.box_noise_prob <= 1.0:
+            raise ValueError(f"SampleOptions.box_noise_prob must be in [0, 1], got {self.box_noise_prob}")
+        if not 0.0 <= self.size_spread < 1.0:
+            raise ValueError(f"SampleOptions.size_spread must be in [0, 1), got {self.size_spread}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (tuples as lists); `from_dict` reads it back."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> SampleOptions:
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"SampleOptions: unknown fields {sorted(unknown)}")
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+
+
+#: Generator version 1's sampling (the defaults).
+V1_SAMPLING = SampleOptions()
+#: Training preset of model v2: every kind, wider sizes, five sensor families, detector-box noise.
+V2_SAMPLING = SampleOptions(kinds=VEHICLE_KINDS, patterns=("hdl64e", "pandar64", "pandar40p", "hdl32e"),
+                            size_spread=WIDE_SIZE_SPREAD, box_noise_prob=0.7)
 
 
 def sample_rng(seed: int, index: int) -> np.random.Generator:
@@ -40,12 +105,13 @@ def _label_for_extent(extent: np.ndarray) -> str:
     return "van" if height > 1.95 else "car"
 
 
-def _draw_shape(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Mesh] | None) -> tuple[Mesh, str, str]:
+def _draw_shape(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Mesh] | None,
+                opts: SampleOptions) -> tuple[Mesh, str, str]:
     """(mesh centred on its bbox, kind or "mesh:<i>", label)."""
     if shape_source is None or isinstance(shape_source, str):
         kind = shape_source if shape_source not in (None, "procedural") else \
-            VEHICLE_KINDS[int(rng.integers(len(VEHICLE_KINDS)))]
-        return generate_vehicle(rng, kind), kind, vehicle_label(kind)
+            opts.kinds[int(rng.integers(len(opts.kinds)))]
+        return generate_vehicle(rng, kind, size_spread=opts.size_spread), kind, vehicle_label(kind)
     meshes = [shape_source] if isinstance(shape_source, Mesh) else list(shape_source)
     if not meshes:
         raise ValueError("make_sample: empty mesh list")
@@ -64,6 +130,18 @@ def _occluder(rng: np.random.Generator, dist: float, az: float) -> Mesh | None:
     return occ.transformed(rng.uniform(-np.pi, np.pi), (d * np.cos(a), d * np.sin(a), occ.extent[2] / 2))
 
 
+def _box_noise(rng: np.random.Generator, opts: SampleOptions) -> np.ndarray:
+    """(7,) detector-like box error: centre offset (x, y, z; m), size factors (l, w, h), yaw offset (rad);
+    identity (zeros, ones, zero) when the draw says no noise. Draws nothing with box_noise_prob 0."""
+    noise = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0])
+    if opts.box_noise_prob > 0 and rng.random() < opts.box_noise_prob:
+        sig = np.array([opts.box_center_sigma, opts.box_center_sigma, opts.box_z_sigma])
+        noise[:3] = rng.normal(0.0, 1.0, 3) * sig
+        noise[3:6] = np.clip(1.0 + rng.normal(0.0, opts.box_size_sigma, 3), 0.7, 1.3)
+        noise[6] = rng.normal(0.0, np.radians(opts.box_yaw_sigma_deg))
+    return noise
+
+
 def network_partial(points: np.ndarray, box: Box3D, prep: Preprocessing, n_input: int
                     ) -> tuple[np.ndarray, int] | None:
     """(network input (n_input, 3), points kept) of a scan of one vehicle through the preprocessing contract,
@@ -75,19 +153,27 @@ def network_partial(points: np.ndarray, box: Box3D, prep: Preprocessing, n_input
 
 
 def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Mesh] | None = None, *,
-                pattern: BeamPattern | str | Sequence[str] = DEFAULT_PATTERNS, n_input: int = 1024,
+                pattern: BeamPattern | str | Sequence[str] | None = None, n_input: int = 1024,
                 n_gt: int = 2048, preprocessing: Preprocessing | None = None, max_attempts: int = 60,
-                surface_resample: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+                surface_resample: bool = False, options: SampleOptions | None = None
+                ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One training pair: (partial (n_input,3), complete (n_gt,3)) float32 normalised by the vehicle's box.
 
-    `shape_source`: None or "procedural" (random kind), a kind name, a Mesh, or a list of meshes (one is
-    drawn, randomly scaled and deformed). The vehicle stands on the ground 5-50 m from a sensor 1.7-2.0 m
+    `shape_source`: None or "procedural" (random kind of `options.kinds`), a kind name, a Mesh, or a list of
+    meshes (one is drawn, randomly scaled and deformed). `pattern`: a pattern, a name or names to draw from
+    (default `options.patterns`). `options` (default V1_SAMPLING, generator version 1) sets the sampling and
+    the sensor effects (see SampleOptions). The vehicle stands on the ground 5-50 m from a sensor 1.7-2.0 m
     high, at any azimuth and heading; the scan goes through the node's preprocessing (`gd_completion.preprocess`
-    with `preprocessing`, default the contract's defaults). Poses giving fewer than its `min_points` points
-    are re-drawn (the shape too, every 10 attempts). `surface_resample` adds
-    meta["surface_resample"]: a second, independent uniform sample of the same surface (drawn last, so the
-    pair is the same with or without it), whose Chamfer distance to `complete` is the metric's floor.
+    with `preprocessing`, default the contract's defaults) with the box, perturbed when the options say so.
+    Poses giving fewer than its `min_points` points are re-drawn (the shape too, every 10 attempts).
+    `surface_resample` adds meta["surface_resample"]: a second, independent uniform sample of the same surface
+    (drawn last, so the pair is the same with or without it), whose Chamfer distance to `complete` is the
+    metric's floor. meta["size"] is the size of the box used (noisy or not), meta["true_size"] the vehicle's,
+    meta["box_noise"] the (7,) error (centre offset, size factors, yaw offset; see `_box_noise`).
     """
+    opts = options or V1_SAMPLING
+    if pattern is None:
+        pattern = opts.patterns
     if isinstance(pattern, BeamPattern):
         patterns = [pattern]
     else:
@@ -98,19 +184,22 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
     margin = prep.crop_margin
     for attempt in range(max_attempts):
         if attempt % 10 == 0:
-            mesh, kind, label = _draw_shape(rng, shape_source)
+            mesh, kind, label = _draw_shape(rng, shape_source, opts)
             size = mesh.extent
         dist, az, yaw = rng.uniform(5.0, 50.0), rng.uniform(-np.pi, np.pi), rng.uniform(-np.pi, np.pi)
         sensor_h = rng.uniform(1.7, 2.0)
         centre = np.array([dist * np.cos(az), dist * np.sin(az), size[2] / 2])
         world = mesh.transformed(yaw, centre)
         occluder = _occluder(rng, dist, az)
-        half = np.degrees(np.arctan2(np.linalg.norm(size[:2]) / 2 + margin + 0.5, dist)) if dist > 8 else 180.0
+        noise = _box_noise(rng, opts)
+        box_size = size * noise[3:6]
+        reach = np.linalg.norm(np.maximum(size, box_size)[:2]) / 2 + np.linalg.norm(noise[:2])
+        half = np.degrees(np.arctan2(reach + margin + 0.5, dist)) if dist > 8 else 180.0
         window = (np.degrees(az) - half, np.degrees(az) + half)
         scan = scan_meshes([world] + ([occluder] if occluder is not None else []), (0.0, 0.0, sensor_h), pat, rng,
                            azimuth_range=window, ground_z=0.0)
-        box = Box3D(center=tuple(float(c) for c in centre), size=tuple(float(s) for s in size),
-                    yaw=float(yaw), label=label, instance_id=0)
+        box = Box3D(center=tuple(float(c) for c in centre + noise[:3]), size=tuple(float(s) for s in box_size),
+                    yaw=float(yaw + noise[6]), label=label, instance_id=0)
         found = network_partial(scan.points, box, prep, n_input)
         if found is not None:
             partial, n_points = found
@@ -119,64 +208,82 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
         raise RuntimeError(f"make_sample: no pose gave {prep.min_points} points in {max_attempts} attempts")
     gt = normalize(sample_surface(world, n_gt, rng), box).astype(np.float32)
     meta = {"kind": kind, "label": label, "pattern": pat.name, "n_points": n_points, "distance": float(dist),
-            "azimuth": float(az), "yaw": float(yaw), "sensor_height": float(sensor_h), "size": size.astype(np.float32),
-            "occluded": occluder is not None, "attempts": attempt + 1}
+            "azimuth": float(az), "yaw": float(yaw), "sensor_height": float(sensor_h),
+            "size": box_size.astype(np.float32), "true_size": size.astype(np.float32),
+            "box_noise": noise.astype(np.float32), "occluded": occluder is not None, "attempts": attempt + 1}
     if surface_resample:
         meta["surface_resample"] = normalize(sample_surface(world, n_gt, rng), box).astype(np.float32)
     return partial, gt, meta
 
 
-_WORKER_MESHES: dict[str, list[Mesh]] = {}
+_WORKER_MESHES: dict[tuple, list[Mesh]] = {}
 
 
-def _meshes(meshes_dir: str | None) -> list[Mesh] | None:
+def _meshes(meshes_dir: str | None, exclude: tuple[str, ...] = (), only: tuple[str, ...] | None = None
+            ) -> list[Mesh] | None:
     if meshes_dir is None:
         return None
-    if meshes_dir not in _WORKER_MESHES:
-        _WORKER_MESHES[meshes_dir] = load_mesh_folder(meshes_dir)
-    return _WORKER_MESHES[meshes_dir]
+    key = (meshes_dir, exclude, only)
+    if key not in _WORKER_MESHES:
+        meshes = load_mesh_folder(meshes_dir, exclude=exclude, only=only)
+        if not meshes:
+            raise DataFormatError(f"{meshes_dir}: no meshes left (exclude {list(exclude)}, only {only})")
+        _WORKER_MESHES[key] = meshes
+    return _WORKER_MESHES[key]
 
 
 def _make_range(args: tuple) -> list[tuple[np.ndarray, np.ndarray, dict]]:
-    start, stop, seed, meshes_dir, patterns, n_input, n_gt, mesh_fraction, resample, prep = args
+    start, stop, seed, mesh_key, n_input, n_gt, mesh_fraction, resample, prep, options = args
     try:  # one thread per worker: FPS runs in torch
         import torch
         torch.set_num_threads(1)
     except ImportError:
         pass
-    meshes = _meshes(meshes_dir)
+    meshes = _meshes(*mesh_key)
+    opts = SampleOptions.from_dict(options)
     out = []
     for i in range(start, stop):
         rng = sample_rng(seed, i)
         source = meshes if meshes and rng.random() < mesh_fraction else None
-        out.append(make_sample(rng, source, pattern=patterns, n_input=n_input, n_gt=n_gt,
-                               preprocessing=Preprocessing.from_dict(prep), surface_resample=resample))
+        out.append(make_sample(rng, source, n_input=n_input, n_gt=n_gt, preprocessing=Preprocessing.from_dict(prep),
+                               surface_resample=resample, options=opts))
     return out
 
 
 def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = None,
-                  patterns: Sequence[str] = DEFAULT_PATTERNS, workers: int = 1, n_input: int = 1024,
+                  patterns: Sequence[str] | None = None, workers: int = 1, n_input: int = 1024,
                   n_gt: int = 2048, mesh_fraction: float = 0.3, surface_resample: bool = False,
-                  preprocessing: Preprocessing | None = None) -> dict[str, Any]:
+                  preprocessing: Preprocessing | None = None, options: SampleOptions | None = None,
+                  exclude_meshes: Sequence[str] | None = None, only_meshes: Sequence[str] | None = None
+                  ) -> dict[str, Any]:
     """`n_samples` pairs, deterministic for `seed` whatever `workers` is (sample i uses `sample_rng(seed, i)`).
 
+    `options` (default V1_SAMPLING: generator version 1's pairs; V2_SAMPLING for training) sets the kinds,
+    patterns, size spread, box noise and sensor effects; `patterns`, when given, replaces its patterns.
     With `meshes_dir`, a fraction `mesh_fraction` of the shapes come from that folder's meshes, the rest
-    are procedural. Returns arrays `partial` (S,n_input,3), `complete` (S,n_gt,3) float32, `n_points`,
-    `size` (S,3), `distance`, `yaw`, `label`, `kind`, `pattern`, and a `metadata` dict; with
+    are procedural. The folder's meshes named (file stem) in `exclude_meshes` are left out: by default
+    `meshio.HELDOUT_MESHES` (never train on the evaluation's shapes), or nothing when `only_meshes` is given
+    (`only_meshes=HELDOUT_MESHES` builds the held-out evaluation set). Returns arrays `partial` (S,n_input,3),
+    `complete` (S,n_gt,3) float32, `n_points`, `size` (S,3) (of the box used, noisy or not), `true_size`
+    (S,3), `box_noise` (S,7), `distance`, `yaw`, `label`, `kind`, `pattern`, and a `metadata` dict holding
+    everything that shaped the data (metadata["sample_options"] is `options.to_dict()`); with
     `surface_resample`, also `surface_resample` (S,n_gt,3) (see `make_sample`; the other arrays are unchanged).
     `preprocessing` (default: the contract's defaults) is recorded in metadata["preprocessing"].
     """
     prep = preprocessing or Preprocessing()
-    patterns = tuple(patterns)
-    for name in patterns:
-        BeamPattern.named(name)  # fail early on a bad name
+    opts = options or V1_SAMPLING
+    if patterns is not None:
+        opts = dataclasses.replace(opts, patterns=tuple(patterns))
     mdir = str(meshes_dir) if meshes_dir is not None else None
+    only = tuple(only_meshes) if only_meshes is not None else None
+    exclude = tuple(exclude_meshes) if exclude_meshes is not None else (() if only is not None else HELDOUT_MESHES)
+    mesh_key = (mdir, exclude, only)
     if mdir is not None:
-        _meshes(mdir)  # fail early on a bad folder
+        _meshes(*mesh_key)  # fail early on a bad folder
     workers = max(1, min(int(workers), n_samples or 1))
     step = max(1, -(-n_samples // (workers * 4)))
-    jobs = [(s, min(s + step, n_samples), int(seed), mdir, patterns, n_input, n_gt, mesh_fraction,
-             bool(surface_resample), prep.to_dict()) for s in range(0, n_samples, step)]
+    jobs = [(s, min(s + step, n_samples), int(seed), mesh_key, n_input, n_gt, mesh_fraction,
+             bool(surface_resample), prep.to_dict(), opts.to_dict()) for s in range(0, n_samples, step)]
     if workers == 1:
         chunks = [_make_range(j) for j in jobs]
     else:
@@ -189,6 +296,8 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
         "complete": np.stack([g for _, g, _ in samples]) if samples else np.zeros((0, n_gt, 3), np.float32),
         "n_points": np.array([m["n_points"] for m in metas], np.int32),
         "size": np.array([m["size"] for m in metas], np.float32).reshape(-1, 3),
+        "true_size": np.array([m["true_size"] for m in metas], np.float32).reshape(-1, 3),
+        "box_noise": np.array([m["box_noise"] for m in metas], np.float32).reshape(-1, 7),
         "distance": np.array([m["distance"] for m in metas], np.float32),
         "yaw": np.array([m["yaw"] for m in metas], np.float32),
         "label": np.array([m["label"] for m in metas], dtype="<U8"),
@@ -201,10 +310,13 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
     labels, counts = np.unique(data["label"], return_counts=True)
     data["metadata"] = {
         "generator_version": GENERATOR_VERSION, "seed": int(seed), "n_samples": int(n_samples),
-        "n_input": int(n_input), "n_gt": int(n_gt), "patterns": list(patterns),
+        "n_input": int(n_input), "n_gt": int(n_gt), "patterns": list(opts.patterns),
         "meshes_dir": mdir, "mesh_fraction": float(mesh_fraction) if mdir else 0.0,
+        "exclude_meshes": list(exclude) if mdir else [], "only_meshes": list(only) if mdir and only else None,
+        "sample_options": opts.to_dict(),
         "label_counts": {str(k): int(v) for k, v in zip(labels, counts)},
-        "normalization": "gd_completion.geometry.normalize (centre, rotate by -yaw, divide by length)",
+        "normalization": "gd_completion.geometry.normalize (centre, rotate by -yaw, divide by length) by the "
+                         "box used (noisy when box_noise is not the identity)",
         "preprocessing": prep.to_dict(),
     }
     return data

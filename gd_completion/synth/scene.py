@@ -9,7 +9,7 @@ from gd_completion.geometry import Box3D
 from gd_completion.synth.beams import BeamPattern
 from gd_completion.synth.lidar import scan_meshes
 from gd_completion.synth.meshio import Mesh, box_mesh, merge_meshes
-from gd_completion.synth.vehicles import VEHICLE_KINDS, generate_vehicle, vehicle_label
+from gd_completion.synth.vehicles import BASE_KINDS, generate_vehicle, vehicle_label
 
 __all__ = ["SyntheticFrame", "synthetic_drive", "SENSOR_HEIGHT", "FRAME_PERIOD_NS"]
 
@@ -18,7 +18,7 @@ FRAME_PERIOD_NS = 100_000_000  # 10 Hz
 EGO_SPEED = 10.0             # m/s along +x
 START_STAMP_NS = 1_700_000_000_000_000_000
 
-_KIND_WEIGHTS = np.array([0.25, 0.15, 0.2, 0.1, 0.12, 0.1, 0.08])  # order of VEHICLE_KINDS
+_KIND_WEIGHTS = np.array([0.25, 0.15, 0.2, 0.1, 0.12, 0.1, 0.08])  # order of BASE_KINDS
 # Lanes (y of the lane centre, metres; the ego drives in lane 0 towards +x, right-hand traffic).
 _PARK_RIGHT, _ONCOMING, _PARK_LEFT = -3.3, 3.5, 6.8
 
@@ -58,7 +58,7 @@ def _overlaps(a: _Actor, b: _Actor, times: np.ndarray) -> bool:
 
 
 def _place_actor(rng: np.random.Generator, times: np.ndarray) -> _Actor:
-    kind = VEHICLE_KINDS[int(rng.choice(len(VEHICLE_KINDS), p=_KIND_WEIGHTS / _KIND_WEIGHTS.sum()))]
+    kind = BASE_KINDS[int(rng.choice(len(BASE_KINDS), p=_KIND_WEIGHTS / _KIND_WEIGHTS.sum()))]
     mesh = generate_vehicle(rng, kind)
     refl = float(rng.uniform(0.25, 0.9))
     role = rng.choice(["park_right", "park_left", "ahead", "oncoming"], p=[0.4, 0.25, 0.15, 0.2])

@@ -6,11 +6,16 @@ import numpy as np
 from gd_completion.synth.meshio import Mesh, box_mesh, load_mesh, load_mesh_folder, merge_meshes, sample_surface
 
 __all__ = [
-    "VEHICLE_KINDS", "KIND_SIZE_RANGES", "Mesh", "generate_vehicle", "vehicle_label", "perturb_mesh",
+    "BASE_KINDS", "VEHICLE_KINDS", "KIND_SIZE_RANGES", "WIDE_SIZE_SPREAD", "size_range", "Mesh", "generate_vehicle",
+    "vehicle_label", "perturb_mesh",
     "fit_to_size", "load_mesh", "load_mesh_folder", "sample_surface",
 ]
 
-VEHICLE_KINDS = ("sedan", "hatchback", "suv", "pickup", "van", "box_truck", "bus")
+#: The kinds of generator version 1 (drawn by `synth.dataset` and the demo drive unless told otherwise).
+BASE_KINDS = ("sedan", "hatchback", "suv", "pickup", "van", "box_truck", "bus")
+VEHICLE_KINDS = BASE_KINDS
+#: Default of `generate_vehicle`'s `size_spread` in wide presets: every size range widened by 15 % each way.
+WIDE_SIZE_SPREAD = 0.15
 
 #: (length, width, height) ranges in metres, bounding box including wheels and mirrors.
 KIND_SIZE_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float], tuple[float, float]]] = {
@@ -132,14 +137,32 @@ def _body(profile: dict, top: np.ndarray, length: float, width: float, height: f
     return _loft(x, loops), belt
 
 
-def generate_vehicle(rng: np.random.Generator, kind: str | None = None) -> Mesh:
-    """Random vehicle mesh (metres, x forward, y left, z up) centred on its bounding box."""
+def size_range(kind: str, size_spread: float = 0.0) -> np.ndarray:
+    """(3, 2) [min, max] of (length, width, height) of `kind`, each range widened by `size_spread` (a
+    fraction: 0.15 gives [0.85 min, 1.15 max])."""
+    if kind not in KIND_SIZE_RANGES:
+        raise ValueError(f"unknown vehicle kind {kind!r}; expected one of {VEHICLE_KINDS}")
+    if not 0.0 <= size_spread < 1.0:
+        raise ValueError(f"size_spread must be in [0, 1), got {size_spread}")
+    r = np.array(KIND_SIZE_RANGES[kind], dtype=np.float64)
+    if size_spread:
+        r = r * np.array([1.0 - size_spread, 1.0 + size_spread])
+    return r
+
+
+def generate_vehicle(rng: np.random.Generator, kind: str | None = None, *, size_spread: float = 0.0) -> Mesh:
+    """Random vehicle mesh (metres, x forward, y left, z up) centred on its bounding box.
+
+    `kind` None draws one of VEHICLE_KINDS. `size_spread` widens the kind's size ranges (see `size_range`):
+    the length, width and height are drawn independently, so a wide spread gives unusual widths and heights
+    for a length. With 0 the draws are those of generator version 1.
+    """
     if kind is None:
         kind = VEHICLE_KINDS[int(rng.integers(len(VEHICLE_KINDS)))]
     if kind not in _PROFILES:
         raise ValueError(f"unknown vehicle kind {kind!r}; expected one of {VEHICLE_KINDS}")
     prof = _PROFILES[kind]
-    (l0, l1), (w0, w1), (h0, h1) = KIND_SIZE_RANGES[kind]
+    (l0, l1), (w0, w1), (h0, h1) = size_range(kind, size_spread)
     length, width, height = rng.uniform(l0, l1), rng.uniform(w0, w1), rng.uniform(h0, h1)
     # Jitter the profile key points (keeping the ends and the ordering).
     top = np.array(prof["top"], dtype=np.float64)

@@ -1,0 +1,156 @@
+"""Generator version 2: sampling options, detector-box noise, mesh split, new kinds, patterns and sensor effects."""
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from gd_completion.geometry import Box3D, denormalize, normalize
+from gd_completion.synth.beams import PATTERN_NAMES, BeamPattern
+from gd_completion.synth.dataset import V1_SAMPLING, V2_SAMPLING, SampleOptions, build_dataset, make_sample, sample_rng
+from gd_completion.synth.meshio import HELDOUT_MESHES
+from gd_completion.synth.vehicles import BASE_KINDS, KIND_SIZE_RANGES, generate_vehicle, size_range
+
+
+def digest(*arrays: np.ndarray) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+
+
+# Checksums of generator version 1 (commit b5d4935), taken before SampleOptions existed.
+V1_PROCEDURAL = "0e4b1f7e46609316"  # build_dataset(4, seed=21, n_input=128, n_gt=256, patterns=PATS)
+V1_MESHES = "32c59dec71f2c2ef"      # build_dataset(3, seed=2, meshes_dir=..., mesh_fraction=1, 128, 256)
+PATS = ("pandar64", "hdl64e", "pandar40p")
+
+
+def test_default_options_reproduce_version_1_bit_for_bit():
+    data = build_dataset(4, seed=21, n_input=128, n_gt=256, patterns=PATS)
+    assert digest(data["partial"], data["complete"], data["size"]) == V1_PROCEDURAL
+    np.testing.assert_array_equal(data["size"], data["true_size"])
+    assert np.all(data["box_noise"] == np.array([0, 0, 0, 1, 1, 1, 0], np.float32))
+    assert data["metadata"]["sample_options"] == dict(V1_SAMPLING.to_dict(), patterns=list(PATS))
+    again = build_dataset(4, seed=21, n_input=128, n_gt=256, options=SampleOptions(patterns=PATS))
+    np.testing.assert_array_equal(again["partial"], data["partial"])
+
+
+def test_version_1_mesh_samples_reachable(shared_data):
+    data = build_dataset(3, seed=2, meshes_dir=shared_data / "vehicle-meshes", mesh_fraction=1.0, n_input=128,
+                         n_gt=256, exclude_meshes=())
+    assert digest(data["partial"], data["complete"]) == V1_MESHES
+
+
+def test_options_round_trip_and_validation():
+    for opts in (V1_SAMPLING, V2_SAMPLING):
+        d = json.loads(json.dumps(opts.to_dict()))
+        assert SampleOptions.from_dict(d) == opts
+    assert V1_SAMPLING.kinds == BASE_KINDS and V1_SAMPLING.box_noise_prob == 0
+    assert V2_SAMPLING.box_noise_prob > 0.5 and set(BASE_KINDS) <= set(V2_SAMPLING.kinds)
+    with pytest.raises(ValueError, match="kinds"):
+        SampleOptions(kinds=("tank",))
+    with pytest.raises(ValueError, match="beam pattern"):
+        SampleOptions(patterns=("nope",))
+    with pytest.raises(ValueError, match="box_noise_prob"):
+        SampleOptions(box_noise_prob=1.5)
+    with pytest.raises(ValueError, match="unknown fields"):
+        SampleOptions.from_dict({"colour": "red"})
+
+
+def _boxes(meta: dict) -> tuple[Box3D, Box3D]:
+    """(true box, noisy box) of a sample from its meta."""
+    dist, az, yaw = meta["distance"], meta["azimuth"], meta["yaw"]
+    true = np.asarray(meta["true_size"], np.float64)
+    centre = np.array([dist * np.cos(az), dist * np.sin(az), true[2] / 2])
+    n = np.asarray(meta["box_noise"], np.float64)
+    return (Box3D(tuple(centre), tuple(true), yaw), Box3D(tuple(centre + n[:3]), tuple(meta["size"]), yaw + n[6]))
+
+
+def test_box_noise_normalises_partial_and_complete_by_the_same_noisy_box():
+    opts = SampleOptions(box_noise_prob=1.0)
+    partial, complete, meta = make_sample(sample_rng(3, 0), "suv", pattern="pandar64", n_input=256, n_gt=2048,
+                                          options=opts)
+    noise = meta["box_noise"]
+    assert not np.allclose(noise, [0, 0, 0, 1, 1, 1, 0])
+    np.testing.assert_allclose(meta["size"], meta["true_size"] * noise[3:6], rtol=1e-5)
+    true_box, noisy_box = _boxes(meta)
+    # complete, brought back with the noisy box and normalised by the true one, fills the true box exactly
+    c_true = normalize(denormalize(complete, noisy_box), true_box)
+    ext = np.asarray(meta["true_size"]) / meta["true_size"][0]
+    assert np.all(c_true.max(0) <= ext / 2 + 1e-3) and np.all(c_true.min(0) >= -ext / 2 - 1e-3)
+    np.testing.assert_allclose((c_true.max(0) - c_true.min(0))[[0, 2]], ext[[0, 2]], atol=0.02)
+    # ... while in the noisy frame it is off by the noise
+    shift = np.abs((complete.max(0) + complete.min(0)) / 2)
+    assert shift.max() > 0.005 or abs(noise[6]) > 0.02
+    # the partial lies on that surface in the same frame
+    d = np.sqrt(((partial[:, None] - complete[None]) ** 2).sum(-1)).min(1) * meta["size"][0]
+    assert np.median(d) < 0.06
+    again = make_sample(sample_rng(3, 0), "suv", pattern="pandar64", n_input=256, n_gt=2048, options=opts)
+    np.testing.assert_array_equal(again[0], partial)
+    np.testing.assert_array_equal(again[2]["box_noise"], noise)
+
+
+def test_box_noise_statistics():
+    opts = SampleOptions(box_noise_prob=0.5)
+    data = build_dataset(24, seed=4, n_input=64, n_gt=64, options=opts)
+    noise = data["box_noise"]
+    noisy = ~np.all(noise == np.array([0, 0, 0, 1, 1, 1, 0], np.float32), axis=1)
+    assert 4 <= noisy.sum() <= 20
+    np.testing.assert_allclose(data["size"], data["true_size"] * noise[:, 3:6], rtol=1e-5)
+    assert np.abs(noise[noisy, :2]).max() < 0.8 and np.abs(noise[noisy, 2]).max() < 0.3
+    assert np.abs(np.degrees(noise[noisy, 6])).max() < 20
+
+
+def test_mesh_split(shared_data):
+    from gd_completion.synth.dataset import _meshes
+
+    folder = shared_data / "vehicle-meshes"
+    n_all = len(_meshes(str(folder)))
+    train = build_dataset(4, seed=2, meshes_dir=folder, mesh_fraction=1.0, n_input=64, n_gt=64)
+    assert train["metadata"]["exclude_meshes"] == list(HELDOUT_MESHES)
+    assert len(_meshes(str(folder), tuple(HELDOUT_MESHES))) == n_all - len(HELDOUT_MESHES)
+    held = build_dataset(4, seed=2, meshes_dir=folder, mesh_fraction=1.0, n_input=64, n_gt=64,
+                         only_meshes=HELDOUT_MESHES)
+    assert held["metadata"]["only_meshes"] == list(HELDOUT_MESHES) and held["metadata"]["exclude_meshes"] == []
+    assert all(int(k.split(":")[1]) < len(HELDOUT_MESHES) for k in held["kind"])
+    # the held-out set's shapes are none of the training set's: compare the drawn meshes' vertex counts
+    from gd_completion.synth.meshio import load_mesh_folder
+
+    train_v = {len(m.vertices) for m in load_mesh_folder(folder, exclude=HELDOUT_MESHES)}
+    held_v = {len(m.vertices) for m in load_mesh_folder(folder, only=HELDOUT_MESHES)}
+    assert train_v.isdisjoint(held_v) or len(train_v | held_v) < n_all  # distinct files (sanity)
+    from gd_completion.errors import DataFormatError
+
+    with pytest.raises(DataFormatError, match="no meshes left"):
+        build_dataset(1, seed=0, meshes_dir=folder, only_meshes=("no_such_mesh",))
+
+
+def test_v2_preset_builds_and_is_recorded():
+    data = build_dataset(6, seed=7, n_input=128, n_gt=256, options=V2_SAMPLING)
+    assert data["partial"].shape == (6, 128, 3) and np.isfinite(data["complete"]).all()
+    assert data["metadata"]["sample_options"] == V2_SAMPLING.to_dict()
+    assert set(data["pattern"]) <= set(V2_SAMPLING.patterns)
+    json.dumps(data["metadata"])
+
+
+def test_wider_size_ranges():
+    rng = np.random.default_rng(0)
+    sizes = np.array([generate_vehicle(rng, "sedan", size_spread=0.15).extent for _ in range(40)])
+    lo, hi = size_range("sedan", 0.15).T
+    assert np.all(sizes >= lo - 1e-6) and np.all(sizes <= hi + 1e-6)
+    (l0, l1), (w0, w1), (h0, h1) = KIND_SIZE_RANGES["sedan"]
+    outside = (sizes[:, 1] < w0) | (sizes[:, 1] > w1) | (sizes[:, 2] < h0) | (sizes[:, 2] > h1)
+    assert outside.sum() >= 10  # widths/heights a version-1 sedan never has
+    with pytest.raises(ValueError):
+        size_range("sedan", 1.5)
+
+
+def test_hdl32e_pattern():
+    assert "hdl32e" in PATTERN_NAMES
+    p = BeamPattern.named("HDL-32E")
+    e = np.array(p.elevations_deg)
+    assert p.n_beams == 32 and e.max() == pytest.approx(10.67) and e.min() == pytest.approx(-30.67)
+    np.testing.assert_allclose(-np.diff(e), 1.333, atol=0.01)
+    assert p.horizontal_resolution_deg == 0.16
