@@ -14,27 +14,32 @@ from __future__ import annotations
 import argparse
 import copy
 import functools
+import json
 import statistics
 import time
 from collections import Counter
 from collections.abc import Callable
 from contextlib import nullcontext
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from gd_completion.model import GGDConfig, GGDNet, ggd_loss
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.model.network import box_shape
 from gd_completion.model.ops import farthest_point_sample, gather_points, knn_graph, torch_kernels
 from gd_completion.pipeline import VehicleCompleter, default_threads
 
 PATHS = {"torch": torch_kernels, "fast": nullcontext}
 
 
-def _vehicles(b: int, n: int) -> torch.Tensor:
-    """`b` simulated lidar scans of procedural vehicles, cropped and normalised as the node does."""
+def _vehicles(b: int, n: int) -> tuple[torch.Tensor, np.ndarray]:
+    """`b` simulated lidar scans of procedural vehicles, cropped and normalised as the node does, and their
+    box sizes (length, width, height)."""
     from gd_completion.synth.dataset import build_dataset
-    return torch.from_numpy(build_dataset(b, seed=424242, n_input=n)["partial"])
+    data = build_dataset(b, seed=424242, n_input=n)
+    return torch.from_numpy(data["partial"]), data["size"]
 
 
 def _interleaved(fns: dict[str, Callable[[], object]], repeats: int, per: int) -> dict[str, list[float]]:
@@ -50,25 +55,26 @@ def _interleaved(fns: dict[str, Callable[[], object]], repeats: int, per: int) -
     return times
 
 
-def _forward(model: GGDNet, x: torch.Tensor, path: str) -> Callable[[], object]:
+def _forward(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, path: str) -> Callable[[], object]:
     def run() -> object:
         with torch.inference_mode(), PATHS[path]():
-            return model(x)
+            return model(x, shape)
     return run
 
 
-def _frame(completer: VehicleCompleter, partials: list[np.ndarray], path: str) -> Callable[[], object]:
+def _frame(completer: VehicleCompleter, partials: list[np.ndarray], sizes: np.ndarray, path: str
+           ) -> Callable[[], object]:
     def run() -> object:
         with PATHS[path]():
-            return completer.complete_normalized(partials)
+            return completer.complete_normalized(partials, sizes)
     return run
 
 
-def gemm_shapes(model: GGDNet, x: torch.Tensor) -> Counter:
+def gemm_shapes(model: GGDNet, x: torch.Tensor, shape: torch.Tensor) -> Counter:
     """(M, K, N, has bias) -> count for every dense addmm / mm of one forward."""
     from torch.profiler import ProfilerActivity, profile
     with torch.inference_mode(), profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
-        model(x)
+        model(x, shape)
     shapes: Counter = Counter()
     for event in prof.events():
         dims = [s for s in event.input_shapes if s]
@@ -100,31 +106,33 @@ def gemm_time_ms(shapes: Counter, repeats: int) -> float:
     return best * 1e3
 
 
-def _synchronized(model: GGDNet, x: torch.Tensor) -> None:
+def _synchronized(model: GGDNet, x: torch.Tensor, shape: torch.Tensor) -> None:
     with torch.inference_mode():
-        model(x)
+        model(x, shape)
     torch.cuda.synchronize()
 
 
-def cuda_rows(model: GGDNet, frame: torch.Tensor, device: str, repeats: int) -> None:
+def cuda_rows(model: GGDNet, frame: torch.Tensor, shapes: torch.Tensor, device: str, repeats: int) -> None:
     """The torch path on a CUDA device: ms per vehicle at batch 1 and for the 16-vehicle batch."""
     if not torch.cuda.is_available():
         print(f"--device {device}: no CUDA device on this machine, CUDA rows skipped")
         return
     gpu = copy.deepcopy(model).to(device)
     for b in (1, len(frame)):
-        times = _interleaved({"cuda": functools.partial(_synchronized, gpu, frame[:b].to(device))}, repeats, b)["cuda"]
+        times = _interleaved({"cuda": functools.partial(_synchronized, gpu, frame[:b].to(device),
+                                                        shapes[:b].to(device))}, repeats, b)["cuda"]
         print(f"{device} ({torch.cuda.get_device_name(device)}), batch {b:2d}: "
               f"{min(times):6.2f} / {statistics.median(times):6.2f} ms per vehicle (min / median)")
 
 
-def stages(model: GGDNet, x: torch.Tensor, repeats: int) -> None:
+def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) -> None:
     """Per-stage latency of the fast path, ms per vehicle at batch 1, one thread."""
     cfg = model.config
+    shape = shape if cfg.box_conditioning else None
     with torch.inference_mode():
         n = cfg.num_input
         order = model._order(x)
-        code = model.encoder(x, order)
+        code = model.encoder(x, order, shape)
         coarse = model.decoder(code)
         pg = torch.cat([gather_points(x, order[:, :cfg.num_control]), coarse], 1)
         margin = cfg.knn_margin if cfg.window_search else None
@@ -133,7 +141,7 @@ def stages(model: GGDNet, x: torch.Tensor, repeats: int) -> None:
         feat = torch.cat([model.local(pg, x, order), pg, torch.zeros(1, pg.shape[1], 2)], -1)
         parts = {
             "fps": lambda: farthest_point_sample(x, order.shape[1]),
-            "encoder": lambda: model.encoder(x, order),
+            "encoder": lambda: model.encoder(x, order, shape),
             "decoder": lambda: model.decoder(code),
             "knn graph": lambda: knn_graph(pg, cfg.knn_k, margin),
             "ball groups": lambda: model.local.group(pg, x, order),
@@ -156,51 +164,59 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="also time the torch path on this CUDA device (e.g. cuda)")
     ap.add_argument("--untrained", action="store_true",
                     help="randomly initialised weights (a collapsed P_s: the worst case for the x-window searches)")
+    ap.add_argument("--config", default=None,
+                    help="with --untrained: JSON file of GGDConfig fields (e.g. recipes/ggd_v2_config.json)")
     args = ap.parse_args()
     torch.manual_seed(0)
-    model = GGDNet(GGDConfig()).eval() if args.untrained else load_model(args.model or DEFAULT_WEIGHTS)
+    if args.untrained:
+        fields = json.loads(Path(args.config).read_text()) if args.config else {}
+        model = GGDNet(GGDConfig.from_dict({**GGDConfig().to_dict(), **fields})).eval()
+    else:
+        model = load_model(args.model or DEFAULT_WEIGHTS)
     cfg = model.config
     cores = default_threads()
     print(f"GGDNet {model.num_parameters():,} parameters, torch {torch.__version__}, {cores} cores; "
           f"ms per vehicle, min / median of {args.repeats} interleaved rounds")
-    frame = _vehicles(16, cfg.num_input)
-    one = frame[:1]
+    frame, sizes = _vehicles(16, cfg.num_input)
+    shapes = box_shape(sizes)
+    one, one_shape = frame[:1], shapes[:1]
     rows: dict[str, dict[str, list[float]]] = {}
     for threads in (1, 2):
         torch.set_num_threads(threads)
         rows[f"batch 1, {threads} thread{'s' if threads > 1 else ''}"] = _interleaved(
-            {p: _forward(model, one, p) for p in PATHS}, args.repeats, 1)
+            {p: _forward(model, one, one_shape, p) for p in PATHS}, args.repeats, 1)
     torch.set_num_threads(1)
     completer = VehicleCompleter(model, threads=cores)
     partials = list(frame.numpy())
     rows[f"16-vehicle frame, {cores} vehicle threads"] = _interleaved(
-        {p: _frame(completer, partials, p) for p in PATHS}, max(3, args.repeats // 2), len(partials))
+        {p: _frame(completer, partials, sizes, p) for p in PATHS}, max(3, args.repeats // 2), len(partials))
     completer.close()
     for name, times in rows.items():
         ratio = statistics.median(times["fast"]) / statistics.median(times["torch"])
         cells = "  ".join(f"{p} {min(t):6.2f} / {statistics.median(t):6.2f}" for p, t in times.items())
         print(f"{name:34s} {cells}  fast/torch {ratio:.2f}")
-    gemm = gemm_time_ms(gemm_shapes(model, one), args.repeats)
+    gemm = gemm_time_ms(gemm_shapes(model, one, one_shape), args.repeats)
     print(f"dense GEMMs of one vehicle (the model's addmm/mm shapes replayed, 1 thread): {gemm:.2f} ms")
     if args.device != "cpu":
-        cuda_rows(model, frame, args.device, args.repeats)
+        cuda_rows(model, frame, shapes, args.device, args.repeats)
     if args.stages:
-        stages(model, one, args.repeats)
+        stages(model, one, one_shape, args.repeats)
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
         with torch.inference_mode(), profile(activities=[ProfilerActivity.CPU]) as prof:
-            model(one)
+            model(one, one_shape)
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15))
     if args.train:
         model.train()
         opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-        x = _vehicles(16, cfg.num_input)
+        x, x_sizes = _vehicles(16, cfg.num_input)
+        x_shapes = box_shape(x_sizes)
         gt = x.repeat(1, cfg.num_output // cfg.num_input + 1, 1)[:, :cfg.num_output] * 1.02
 
         def step(path: str) -> Callable[[], None]:
             def run() -> None:
                 with PATHS[path]():
-                    loss = ggd_loss(model(x), gt, lam=3.0)["total"]
+                    loss = ggd_loss(model(x, x_shapes), gt, lam=3.0)["total"]
                 opt.zero_grad()
                 loss.backward()
                 opt.step()

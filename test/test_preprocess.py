@@ -22,9 +22,9 @@ class Recording(torch.nn.Module):
         self.config = model.config
         self.inputs: list[torch.Tensor] = []
 
-    def forward(self, x: torch.Tensor):
+    def forward(self, x: torch.Tensor, box_shape: torch.Tensor | None = None):
         self.inputs.append(x.detach().clone())
-        return self.model(x)
+        return self.model(x, box_shape)
 
 
 @pytest.fixture(scope="module")

@@ -163,8 +163,10 @@ def run(args: argparse.Namespace) -> int:
              "val_samples": args.val_samples, "meshes": str(args.meshes) if args.meshes else None,
              "data": train_data["metadata"]["cache_key"],
              "init_from": str(args.init_from) if args.init_from else None, "init_skip": args.init_skip}, indent=2))
-    result = train(config, (train_data["partial"], train_data["complete"]),
-                   (val_data["partial"], val_data["complete"]), args.output, settings, resume=args.resume,
+    sized = config.box_conditioning   # a box-conditioned model is given the size of the box it sees
+    result = train(config, (train_data["partial"], train_data["complete"]) + ((train_data["size"],) if sized else ()),
+                   (val_data["partial"], val_data["complete"]) + ((val_data["size"],) if sized else ()),
+                   args.output, settings, resume=args.resume,
                    init_from=args.init_from, init_skip=tuple(args.init_skip), preprocessing=spec.preprocessing)
     print(f"train: {result.epochs_done} epochs, best checkpoint {result.best_path}, last {result.last_path}")
     return 0
