@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -276,3 +277,29 @@ def test_default_size_forward_backward():
     ggd_loss(out, _cloud(2, 2048, 4), lam=3.0)["total"].backward()
     assert all(p.grad is not None for p in model.parameters())
     assert math.isfinite(float(out.completion.detach().abs().max()))
+
+
+def test_box_conditioning_starts_as_the_unconditioned_model(tmp_path):
+    """Zero-initialised box input: a warm start from an unconditioned checkpoint keeps its outputs exactly;
+    the box shape is required."""
+    from dataclasses import replace
+
+    from gd_completion.model.checkpoint import save_checkpoint
+    from gd_completion.model.network import box_shape
+    from gd_completion.train import warm_start
+
+    torch.manual_seed(0)
+    plain = GGDNet(TINY).eval()
+    save_checkpoint(tmp_path / "plain.pt", plain)
+    cond = GGDNet(replace(TINY, box_conditioning=True)).eval()
+    assert warm_start(cond, tmp_path / "plain.pt") == ["encoder.box_in.weight"]
+    x = torch.rand(3, TINY.num_input, 3) - 0.5
+    shapes = box_shape([[4.5, 1.8, 1.5], [6.0, 2.4, 2.9], [12.0, 2.5, 3.1]])
+    with torch.inference_mode():
+        assert torch.equal(cond(x, shapes).completion, plain(x).completion)
+        assert torch.equal(plain(x, shapes).completion, plain(x).completion)   # ignored without conditioning
+        with pytest.raises(ValueError, match="box_shape"):
+            cond(x)
+        with pytest.raises(ValueError, match="box_shape"):
+            cond(x, shapes[:2])
+    np.testing.assert_allclose(shapes.numpy(), [[0.4, 1 / 3], [0.4, 2.9 / 6], [2.5 / 12, 3.1 / 12]], rtol=1e-6)

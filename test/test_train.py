@@ -166,3 +166,49 @@ def test_train_command_tiny_run(tmp_path, caplog):
         assert main(argv) == 0  # the second run reuses both data sets
     assert "loaded 4 cached samples" in caplog.text and "loaded 2 cached samples" in caplog.text
     assert "samples in" not in caplog.text  # "generated N samples in T s"
+
+
+def test_box_conditioned_training_needs_sizes_and_learns_to_use_them(tmp_path):
+    from dataclasses import replace
+
+    from gd_completion.model.network import box_shape
+
+    cfg = replace(TINY, box_conditioning=True)
+    partial, complete = _data(8, 0)
+    with pytest.raises(DataFormatError, match="box sizes"):
+        train(cfg, (partial, complete), (partial[:2], complete[:2]), tmp_path / "a", _settings(epochs=1))
+    sizes = np.tile(np.array([[4.5, 1.8, 1.5]], np.float32), (8, 1))
+    sizes[::2, 1] = 2.4   # half of the boxes are wider
+    res = train(cfg, (partial, complete, sizes), (partial[:2], complete[:2], sizes[:2]), tmp_path / "b",
+                _settings(epochs=2))
+    model = load_model(res.last_path)
+    assert model.config.box_conditioning
+    x = torch.from_numpy(partial[:1])
+    with torch.inference_mode():
+        narrow = model(x, box_shape([[4.5, 1.8, 1.5]])).completion
+        wide = model(x, box_shape([[4.5, 2.4, 1.5]])).completion
+        with pytest.raises(ValueError, match="box-conditioned"):
+            model(x)
+    assert not torch.equal(narrow, wide)   # the box shape reached the output
+
+
+def test_train_command_from_a_recipe(tmp_path):
+    import json
+
+    from gd_completion.cli import main
+
+    recipe = {"name": "tiny", "config": {**TINY.to_dict(), "box_conditioning": True}, "sampling": "v2",
+              "samples": 4, "val_samples": 2, "epochs": 1, "generation_epochs": 1, "batch_size": 2, "seed": 3}
+    path = tmp_path / "tiny_recipe.json"
+    path.write_text(json.dumps(recipe))
+    out = tmp_path / "run"
+    assert main(["train", "--recipe", str(path), "--output", str(out), "--workers", "1"]) == 0
+    settings = json.loads((out / "settings.json").read_text())
+    assert settings["recipe"] == str(path) and settings["samples"] == 4 and settings["settings"]["seed"] == 3
+    assert settings["data"]["options"]["box_noise_prob"] > 0   # the v2 sampling preset shaped the data
+    assert load_model(out / "last.pt").config.box_conditioning
+    # a shaping option both in the recipe and on the command line: refused, nothing trained
+    assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "b"), "--samples", "8"]) == 2
+    assert not (tmp_path / "b" / "last.pt").exists()
+    path.write_text(json.dumps({**recipe, "learning_rate": 0.1}))
+    assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "c")]) == 2

@@ -13,7 +13,15 @@ from typing import TYPE_CHECKING, Any
 from gd_completion.atomic import atomic_path, make_folder
 from gd_completion.errors import DataFormatError
 from gd_completion.preprocess import Preprocessing
-from gd_completion.synth.dataset import DEFAULT_PATTERNS, GENERATOR_VERSION, build_dataset, load_dataset, save_dataset
+from gd_completion.synth.dataset import (
+    GENERATOR_VERSION,
+    V1_SAMPLING,
+    V2_SAMPLING,
+    SampleOptions,
+    build_dataset,
+    load_dataset,
+    save_dataset,
+)
 from gd_completion.synth.meshio import mesh_folder_digest
 
 if TYPE_CHECKING:
@@ -56,7 +64,53 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="warm start: copy every tensor of this checkpoint whose name and shape match")
     parser.add_argument("--init-skip", action="append", default=[], metavar="PREFIX",
                         help="with --init-from, keep tensors whose name starts with PREFIX fresh (repeatable)")
+    parser.add_argument("--sampling", default="v1", choices=sorted(SAMPLING_PRESETS),
+                        help="synthetic sampling preset (v1: the shipped v1 model's data; v2: every kind, wider sizes, "
+                        "five sensor families, detector-box noise; see synth.dataset.SampleOptions)")
+    parser.add_argument("--recipe", type=Path, default=None,
+                        help="JSON recipe of a run (see recipes/): its keys are this command's options that shape the "
+                        "model (samples, seed, meshes, config, sampling, epochs, lr, init_from, ...); combine it only "
+                        "with --output, --cache, --workers, --device, --time-budget and --resume")
     parser.set_defaults(func=run)
+    RECIPE_DEFAULTS.update({k: parser.get_default(k) for k in RECIPE_KEYS})
+
+
+#: Options a recipe may set (argparse destinations), and their command-line defaults.
+RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "epochs", "generation_epochs", "lam", "alpha", "beta",
+               "batch_size", "lr", "num_control", "config", "init_from", "init_skip", "sampling")
+RECIPE_DEFAULTS: dict[str, Any] = {}
+_PATH_KEYS = ("meshes", "init_from")
+SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
+
+
+def apply_recipe(args: argparse.Namespace, recipe_path: Path) -> None:
+    """Set `args` from a recipe file; a shaping option also given on the command line is an error (one source
+    of truth per run). Relative paths in the recipe are relative to the current folder, like the CLI's."""
+    try:
+        recipe = json.loads(recipe_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DataFormatError(f"{recipe_path}: cannot read the recipe ({exc})") from exc
+    if not isinstance(recipe, dict):
+        raise DataFormatError(f"{recipe_path}: a recipe is a JSON object")
+    unknown = sorted(set(recipe) - set(RECIPE_KEYS) - {"name", "notes"})
+    if unknown:
+        raise DataFormatError(f"{recipe_path}: unknown recipe keys {unknown}; expected some of {list(RECIPE_KEYS)}")
+    clashes = [k for k in recipe if k in RECIPE_KEYS and getattr(args, k) != RECIPE_DEFAULTS.get(k)]
+    if clashes:
+        raise DataFormatError(f"{recipe_path}: also given on the command line: {clashes}")
+    for key in RECIPE_KEYS:
+        if key in recipe:
+            value = recipe[key]
+            setattr(args, key, Path(value) if key in _PATH_KEYS and value is not None else value)
+
+
+def sampling_options(value: str | dict[str, Any]) -> SampleOptions:
+    """A preset name of SAMPLING_PRESETS or a dict of SampleOptions fields."""
+    if isinstance(value, dict):
+        return SampleOptions.from_dict(value)
+    if value not in SAMPLING_PRESETS:
+        raise DataFormatError(f"unknown sampling preset {value!r}; expected one of {sorted(SAMPLING_PRESETS)}")
+    return SAMPLING_PRESETS[value]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,23 +122,23 @@ class DatasetSpec:
     n_input: int
     n_gt: int
     meshes_dir: Path | None = None
-    patterns: tuple[str, ...] = DEFAULT_PATTERNS
     mesh_fraction: float = MESH_FRACTION
     preprocessing: Preprocessing = Preprocessing()
+    options: SampleOptions = V1_SAMPLING
 
     def key(self) -> dict[str, Any]:
         """JSON-ready cache key: the generator version, the settings and a digest of the meshes' files."""
         return {"generator_version": GENERATOR_VERSION, "n_samples": self.n_samples, "seed": self.seed,
-                "n_input": self.n_input, "n_gt": self.n_gt, "patterns": list(self.patterns),
+                "n_input": self.n_input, "n_gt": self.n_gt, "options": self.options.to_dict(),
                 "mesh_fraction": self.mesh_fraction if self.meshes_dir else 0.0,
                 "meshes_digest": mesh_folder_digest(self.meshes_dir) if self.meshes_dir else None,
                 "preprocessing": self.preprocessing.to_dict()}
 
     def build(self, workers: int) -> dict[str, Any]:
-        """Generate the data set."""
-        return build_dataset(self.n_samples, self.seed, meshes_dir=self.meshes_dir, patterns=self.patterns,
-                             workers=workers, n_input=self.n_input, n_gt=self.n_gt, mesh_fraction=self.mesh_fraction,
-                             preprocessing=self.preprocessing)
+        """Generate the data set (meshes of `meshio.HELDOUT_MESHES` are never drawn)."""
+        return build_dataset(self.n_samples, self.seed, meshes_dir=self.meshes_dir, workers=workers,
+                             n_input=self.n_input, n_gt=self.n_gt, mesh_fraction=self.mesh_fraction,
+                             preprocessing=self.preprocessing, options=self.options)
 
 
 def cached_dataset(cache_dir: Path, prefix: str, spec: DatasetSpec, workers: int) -> dict[str, Any]:
@@ -117,7 +171,10 @@ def load_config(args: argparse.Namespace) -> GGDConfig:
     """GGDConfig from --config JSON and --num-control (the tree decoder arity follows N_c)."""
     from gd_completion.model.config import GGDConfig
 
-    fields = json.loads(args.config.read_text()) if args.config else {}
+    if isinstance(args.config, dict):   # inline in a recipe
+        fields = dict(args.config)
+    else:
+        fields = json.loads(Path(args.config).read_text()) if args.config else {}
     if args.num_control is not None:
         fields["num_control"] = args.num_control
         fields.setdefault("tree_arity", tree_arity_for(GGDConfig().num_output - args.num_control))
@@ -145,10 +202,13 @@ def run(args: argparse.Namespace) -> int:
     from gd_completion.train import TrainSettings, train
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    if args.recipe is not None:
+        apply_recipe(args, args.recipe)
     make_folder(args.output)  # an unwritable output fails before any work
     cache = make_folder(args.cache or args.output)
     config = load_config(args)
-    spec = DatasetSpec(args.samples, args.seed, config.num_input, config.num_output, args.meshes)
+    spec = DatasetSpec(args.samples, args.seed, config.num_input, config.num_output, args.meshes,
+                       options=sampling_options(args.sampling))
     train_data = cached_dataset(cache, "train", spec, args.workers)
     val_spec = dataclasses.replace(spec, n_samples=args.val_samples, seed=args.seed + VALIDATION_SEED_OFFSET)
     val_data = cached_dataset(cache, "val", val_spec, args.workers)
@@ -161,6 +221,7 @@ def run(args: argparse.Namespace) -> int:
         tmp.write_text(json.dumps(
             {"config": config.to_dict(), "settings": dataclasses.asdict(settings), "samples": args.samples,
              "val_samples": args.val_samples, "meshes": str(args.meshes) if args.meshes else None,
+             "recipe": str(args.recipe) if args.recipe else None,
              "data": train_data["metadata"]["cache_key"],
              "init_from": str(args.init_from) if args.init_from else None, "init_skip": args.init_skip}, indent=2))
     sized = config.box_conditioning   # a box-conditioned model is given the size of the box it sees
