@@ -303,3 +303,27 @@ def test_box_conditioning_starts_as_the_unconditioned_model(tmp_path):
         with pytest.raises(ValueError, match="box_shape"):
             cond(x, shapes[:2])
     np.testing.assert_allclose(shapes.numpy(), [[0.4, 1 / 3], [0.4, 2.9 / 6], [2.5 / 12, 3.1 / 12]], rtol=1e-6)
+
+
+def test_mirrored_local_features_reach_the_unseen_side():
+    """With mirror_local_features the balls around a point opposite the seen side group mirrored input points."""
+    from dataclasses import replace
+
+    from gd_completion.model.network import LocalFeatures, mirrored_source
+
+    cfg = replace(TINY, mirror_local_features=True)
+    g = torch.Generator().manual_seed(0)
+    n = cfg.num_input
+    seen = torch.rand(1, n, 3, generator=g) * torch.tensor([1.0, 0.05, 0.3]) + torch.tensor([-0.5, 0.17, -0.15])
+    order = torch.arange(n).unsqueeze(0)
+    source, source_order = mirrored_source(seen, order)
+    assert source.shape == (1, 2 * n, 3) and torch.equal(source[0, n:, 1], -seen[0, :, 1])
+    assert source_order[0, :4].tolist() == [0, n, 1, n + 1]
+    opposite = seen[:, :5] * torch.tensor([1.0, -1.0, 1.0])     # where the unseen side would be
+    idx = LocalFeatures(cfg).group(opposite, source, source_order)
+    assert (idx[..., 0, :] >= n).all()                            # the r-ball holds mirrored points only
+    plain = LocalFeatures(TINY).eval()
+    mirrored = LocalFeatures(cfg).eval()
+    mirrored.load_state_dict(plain.state_dict())
+    with torch.inference_mode():
+        assert not torch.equal(mirrored(opposite, seen, order), plain(opposite, seen, order))

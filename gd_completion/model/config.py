@@ -40,6 +40,8 @@ class GGDConfig:
     offset_init_gain: float = 0.1                # small initial offsets: P_o starts near P_g
     # conditioning on the box shape (width/length, height/length), a deviation from the paper (docs/MODEL.md)
     box_conditioning: bool = False
+    # local features also group the input's mirror image (y -> -y): the deformation sees the likely unseen side
+    mirror_local_features: bool = False
 
     def __post_init__(self) -> None:
         for name in _TUPLE_FIELDS:

@@ -130,6 +130,16 @@ class TreeDecoder(nn.Module):
         return nodes
 
 
+def mirrored_source(partial: Tensor, order: Tensor) -> tuple[Tensor, Tensor]:
+    """(input followed by its mirror image y -> -y (B, 2N, 3), FPS order interleaving each point with its mirror).
+
+    Every prefix of 2k of the new order is the first k FPS points and their mirror images, so the ball groups'
+    FPS subsets keep their meaning (the same density of points per ball at every scale)."""
+    n = partial.shape[1]
+    mirror = partial * partial.new_tensor([1.0, -1.0, 1.0])
+    return torch.cat([partial, mirror], 1), torch.stack([order, order + n], -1).reshape(order.shape[0], -1)
+
+
 class LocalFeatures(nn.Module):
     """F(p_i; P): input points grouped in balls of radii s*r around p_i, shared MLP, max-pool, concat scales.
 
@@ -141,6 +151,7 @@ class LocalFeatures(nn.Module):
         super().__init__()
         self.radius, self.m, self.scales = cfg.radius, cfg.ball_m, cfg.ball_scales
         self.window = cfg.window_search
+        self.mirror = cfg.mirror_local_features
         self.mlp = _mlp_bn(3, cfg.local_widths)
         self.out_dim = len(cfg.ball_scales) * cfg.local_widths[-1]
         self.register_buffer("inv_radius", 1.0 / (cfg.radius * torch.tensor(cfg.ball_scales, dtype=torch.float32)),
@@ -150,6 +161,8 @@ class LocalFeatures(nn.Module):
 
     def forward(self, centers: Tensor, partial: Tensor, order: Tensor) -> Tensor:
         b, q, _ = centers.shape
+        if self.mirror:
+            partial, order = mirrored_source(partial, order)
         idx = self.group(centers, partial, order)   # every query at once: the same searches in training and eval
         if self.training or b * q <= self.EVAL_CHUNK:
             return self._features(centers, partial, idx)
