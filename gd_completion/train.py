@@ -36,6 +36,7 @@ class TrainSettings:
     beta: float = 0.5
     batch_size: int = 32
     lr: float = 1e-3                # paper: 0.01; see docs/MODEL.md
+    lr_final: float | None = None   # cosine decay per epoch from lr to lr_final (None: constant lr)
     max_grad_norm: float = 10.0     # gradient clipping (0 disables)
     seed: int = 0
     device: str = "cpu"
@@ -44,6 +45,13 @@ class TrainSettings:
     def lam_at(self, epoch: int) -> float:
         """Lambda of the 0-based `epoch`."""
         return 0.0 if epoch < self.generation_epochs else self.lam
+
+    def lr_at(self, epoch: int) -> float:
+        """Learning rate of the 0-based `epoch`: constant, or cosine from `lr` (first epoch) to `lr_final` (last)."""
+        if self.lr_final is None or self.epochs <= 1:
+            return self.lr
+        t = min(epoch, self.epochs - 1) / (self.epochs - 1)
+        return self.lr_final + 0.5 * (self.lr - self.lr_final) * (1.0 + math.cos(math.pi * t))
 
 
 @dataclass
@@ -169,8 +177,6 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr)
     if optimizer_state is not None:
         optimizer.load_state_dict(optimizer_state)
-        for group in optimizer.param_groups:
-            group["lr"] = settings.lr
     log.info("training GGDNet (%d parameters) on %d samples, validating on %d, device %s",
              model.num_parameters(), tr_x.shape[0], va_x.shape[0], device)
 
@@ -178,6 +184,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     done = start_epoch
     for epoch in range(start_epoch, settings.epochs):
         lam = settings.lam_at(epoch)
+        for group in optimizer.param_groups:
+            group["lr"] = settings.lr_at(epoch)
         model.train()
         g = torch.Generator().manual_seed(settings.seed * 100003 + epoch)   # resumable shuffling
         perm = torch.randperm(tr_x.shape[0], generator=g)
@@ -205,7 +213,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                             history=history, settings=asdict(settings), best_cd=best)
             log.info("time budget of %s s reached before epoch %d; stopping", settings.time_budget_s, epoch + 1)
             break
-        record = {"epoch": epoch + 1, "lam": lam, "seconds": time.monotonic() - t0,
+        record = {"epoch": epoch + 1, "lam": lam, "lr": settings.lr_at(epoch), "seconds": time.monotonic() - t0,
                   **{f"train_{k}": v / seen for k, v in sums.items()},
                   **{f"val_{k}": v for k, v in evaluate(model, va_x, va_y, settings.batch_size, device,
                                                                      va_s).items()}}

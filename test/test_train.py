@@ -212,3 +212,12 @@ def test_train_command_from_a_recipe(tmp_path):
     assert not (tmp_path / "b" / "last.pt").exists()
     path.write_text(json.dumps({**recipe, "learning_rate": 0.1}))
     assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "c")]) == 2
+
+
+def test_cosine_learning_rate_schedule():
+    s = TrainSettings(epochs=5, lr=1e-3, lr_final=1e-5)
+    lrs = [s.lr_at(e) for e in range(5)]
+    assert lrs[0] == pytest.approx(1e-3) and lrs[-1] == pytest.approx(1e-5)
+    assert all(a > b for a, b in zip(lrs, lrs[1:]))
+    assert lrs[2] == pytest.approx(0.5 * (1e-3 + 1e-5))
+    assert TrainSettings(epochs=5, lr=2e-3).lr_at(4) == 2e-3   # constant by default

@@ -55,6 +55,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--beta", type=float, default=0.5, help="weight of the Laplacian shape term (paper: 0.5)")
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--lr-final", type=float, default=None,
+                        help="cosine decay of the learning rate per epoch from --lr to this (default: constant)")
     parser.add_argument("--device", default=None, help="torch device (default: cuda when available, else cpu)")
     parser.add_argument("--time-budget", type=float, default=None, help="stop after this many seconds")
     parser.add_argument("--resume", action="store_true", help="continue from OUTPUT/last.pt")
@@ -77,7 +79,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 #: Options a recipe may set (argparse destinations), and their command-line defaults.
 RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "epochs", "generation_epochs", "lam", "alpha", "beta",
-               "batch_size", "lr", "num_control", "config", "init_from", "init_skip", "sampling")
+               "batch_size", "lr", "lr_final", "num_control", "config", "init_from", "init_skip", "sampling")
 RECIPE_DEFAULTS: dict[str, Any] = {}
 _PATH_KEYS = ("meshes", "init_from")
 SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
@@ -215,7 +217,8 @@ def run(args: argparse.Namespace) -> int:
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
                              alpha=args.alpha, beta=args.beta,
-                             batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=device,
+                             batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
+                             device=device,
                              time_budget_s=args.time_budget)
     with atomic_path(args.output / "settings.json") as tmp:
         tmp.write_text(json.dumps(
