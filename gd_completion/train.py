@@ -20,6 +20,7 @@ from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
 
 log = logging.getLogger(__name__)
+PROGRESS_STEPS = 100   # a progress line in the log every this many optimisation steps
 
 # (partial (S, N, 3), complete (S, N_o, 3)[, box sizes (S, 3)]) numpy arrays or tensors
 ArrayPair = Sequence[Any]
@@ -208,6 +209,10 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             for k, v in losses.items():
                 sums[k] = sums.get(k, 0.0) + v.item() * idx.numel()
             seen += idx.numel()
+            steps = s // settings.batch_size + 1
+            if steps % PROGRESS_STEPS == 0:
+                log.info("epoch %d step %d/%d loss %.4f (%.1f s)", epoch + 1, steps,
+                         -(-perm.numel() // settings.batch_size), sums["total"] / seen, time.monotonic() - t0)
         if seen == 0:   # time budget ran out before the first batch of this epoch
             save_checkpoint(last_path, model, preprocessing, optimizer=optimizer.state_dict(), epoch=epoch,
                             history=history, settings=asdict(settings), best_cd=best)
