@@ -144,8 +144,14 @@ def test_evaluate_synthetic_values():
 
     partial, complete = _half_box_pairs()
     torch.manual_seed(0)
-    result = evaluate_synthetic(GGDNet(TINY).eval(), partial, complete, seed=5, source="test")
+    sizes = np.tile([4.0, 1.6, 1.2], (3, 1))  # the half-box shape (1, 0.4, 0.3) is normalised by a 4 m length
+    result = evaluate_synthetic(GGDNet(TINY).eval(), partial, complete, sizes, seed=5, source="test")
     assert set(result.metrics) == set(baselines.BASELINE_NAMES)
+    assert result.points == {"input": 1024, "mirror": 2048, "box_fill": 256, "template": 256,
+                             "mirror_template": 256, "generation": 256, "ggd": 256}
+    # the box alone covers the hidden half far better than the raw input; mirror + template sits on the surface
+    assert result.metrics["box_fill"]["cd_gd"] < result.metrics["input"]["cd_gd"] / 3
+    assert result.metrics["mirror_template"]["cd_dg"] < result.metrics["box_fill"]["cd_dg"]
     for name, m in result.metrics.items():
         assert m["cd"] == pytest.approx(m["cd_dg"] + m["cd_gd"], rel=1e-5), name
     brute_dg = np.mean([((p[:, None] - g[None]) ** 2).sum(-1).min(1).mean() for p, g in zip(partial, complete)])
@@ -241,11 +247,11 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     partial, complete = _half_box_pairs(3)
     seen = {}
 
-    def fake_heldout(n, *, seed, mesh_dir=None, path=None):
+    def fake_heldout(n, *, seed, path=None):
         from gd_completion.evaluation.synthetic import HeldOut
 
         seen.update(n=n, seed=seed)
-        return HeldOut(partial[:n], complete[:n], "test pairs", complete[:n] + 0.01)
+        return HeldOut(partial[:n], complete[:n], "test pairs", complete[:n] + 0.01, np.tile([4.0, 1.6, 1.2], (n, 1)))
 
     monkeypatch.setattr(synthetic, "load_heldout", fake_heldout)  # evaluate imports it when it runs
     parser = argparse.ArgumentParser()
@@ -255,6 +261,7 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
                               "--synthetic-samples", "2", "--ablation-checkpoints", str(ablation), str(model_path),
                               "--pandaset", str(shared_data / "pandaset-002"), "--max-vehicles", "2",
                               "--max-frames-per-vehicle", "2", "--threads", "1", "--fusion-max-vehicles", "1",
+                              "--heldout-mesh-samples", "2", "--random-reference-points", "2000",
                               "--fusion-max-frames", "3", "--fusion-consistency-frames", "3"])
     assert args.func(args) == 0
     assert seen == {"n": 2, "seed": synthetic.EVAL_SEED}
@@ -274,11 +281,17 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
                  if line.startswith(("| GGD-Net", "| generation only"))}
     row32 = cells(ablation_rows[0])
     assert row32[3] == synthetic["GGD-Net"][1] and row32[4] == synthetic["generation only"][1]
-    pandaset_rows = [line for line in text.split("## PandaSet")[1].splitlines() if line.startswith("| raw input")]
-    assert len(pandaset_rows) == 2
-    assert pandaset_rows[1].split("|")[2].strip() == "0.000"  # raw input is perfectly faithful to itself
-    assert float(pandaset_rows[0].split("|")[2]) > 0.0
+    assert "## Held-out meshes" in text and "held-out meshes of vehicle-meshes" in text
+    pandaset = text.split("## PandaSet 002: single")[1].split("## PandaSet 002: track fusion")[0]
+    pandaset_rows = [line for line in pandaset.splitlines() if line.startswith("| raw input")]
+    assert len(pandaset_rows) == 6   # random and voxel coverage, fidelity, two-sided, by sensor, box noise
+    fidelity_rows = [line for line in pandaset.split("### Fidelity")[1].splitlines() if line.startswith("| ")]
+    assert cells(fidelity_rows[1])[0] == "raw input" and cells(fidelity_rows[1])[1] == "0.000"  # faithful to itself
+    assert float(cells(pandaset_rows[0])[2]) > 0.0
+    assert cells(pandaset_rows[0])[1].startswith("own: mean")
     assert (out / "pandaset_vehicles.png").stat().st_size > 10_000
+    assert (out / "pandaset_worst.png").stat().st_size > 10_000
+    assert (out / "heldout_meshes.png").stat().st_size > 10_000
     assert (out / "synthetic_vehicles.png").stat().st_size > 10_000
 
 
@@ -286,13 +299,14 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     from gd_completion.evaluation.synthetic import EVAL_SEED, load_heldout
     from gd_completion.synth import dataset
 
-    partial, complete, source, surface = load_heldout(2)
+    partial, complete, source, surface, sizes = load_heldout(2)
     assert partial.shape == (2, 1024, 3) and complete.shape == (2, 2048, 3) and surface.shape == (2, 2048, 3)
     assert str(EVAL_SEED) in source
     # the second surface sample is another sample of the same shape, not a copy, and leaves the pair unchanged
     plain = dataset.build_dataset(2, EVAL_SEED)
     np.testing.assert_array_equal(plain["complete"], complete)
     np.testing.assert_array_equal(plain["partial"], partial)
+    np.testing.assert_array_equal(plain["size"], sizes)
     assert not np.allclose(surface, complete)
     from gd_completion.evaluation import metrics
     floor = metrics.chamfer(surface, complete).numpy()
@@ -300,8 +314,15 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     training = dataset.build_dataset(2, 0)
     assert not np.allclose(training["complete"], complete)  # evaluation shapes are not the seed-0 shapes
     path = dataset.save_dataset(tmp_path / "heldout.npz", dataset.build_dataset(3, EVAL_SEED + 1))
-    p2, c2, source2, surface2 = load_heldout(2, path=path)
+    p2, c2, source2, surface2, sizes2 = load_heldout(2, path=path)
     assert p2.shape == (2, 1024, 3) and c2.shape == (2, 2048, 3) and "heldout.npz" in source2 and surface2 is None
+    assert sizes2.shape == (2, 3) and np.all(sizes2[:, 0] > sizes2[:, 1])  # (length, width, height) of the set
+    data = dataset.load_dataset(path)
+    del data["size"]
+    dataset.save_dataset(tmp_path / "nosize.npz", data)
+    from gd_completion.errors import EvaluationError
+    with pytest.raises(EvaluationError, match="no per-sample box sizes"):
+        load_heldout(2, path=tmp_path / "nosize.npz")
 
 
 def test_evaluate_command_skips_missing_pandaset(tmp_path, capsys):

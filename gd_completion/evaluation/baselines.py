@@ -9,9 +9,14 @@ import torch
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import network_input
 
-# Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s).
-BASELINE_NAMES: tuple[str, ...] = ("input", "mirror", "generation", "ggd")
+# Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s); "box_fill",
+# "template" and "mirror_template" are the box-only priors of `priors` (no learning).
+BASELINE_NAMES: tuple[str, ...] = ("input", "mirror", "box_fill", "template", "mirror_template", "generation",
+                                   "ggd")
 BASELINE_TITLES: dict[str, str] = {"input": "raw input", "mirror": "mirror symmetry",
+                                   "box_fill": "box fill (uniform in the box, no input)",
+                                   "template": "template (sedan fitted to the box, no input)",
+                                   "mirror_template": "mirror + template, FPS to 2048",
                                    "generation": "generation only", "ggd": "GGD-Net"}
 
 

@@ -48,6 +48,7 @@ class FusedTrack:
     frames: list[int] = field(default_factory=list)
     single: list[np.ndarray] = field(default_factory=list)  # normalised (M, 3), every frame
     fused: list[np.ndarray] = field(default_factory=list)   # normalised fused partial, first `max_frames` frames
+    sizes: list[tuple[float, float, float]] = field(default_factory=list)  # box (length, width, height) per frame
 
     def aggregate(self) -> np.ndarray:
         """All frames' points in the box frame (normalised): the multi-frame reference."""
@@ -197,6 +198,7 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
             track = tracks[vehicle.box.instance_id]
             track.frames.append(index)
             track.single.append(vehicle.normalized)
+            track.sizes.append(vehicle.box.size)
     seen = [t for t in tracks.values() if any(len(p) >= MIN_INPUT_POINTS for p in t.single)]
     chosen = {t.instance_id: t for group in (True, False)
               for t in [t for t in seen if t.stationary == group][:max_vehicles]}
@@ -222,8 +224,13 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
     fused_keys = sorted({(i, p) for i, (cover, steady) in plans.items() for p in [p for _, p in cover] + steady})
     single_keys = sorted({(i, p) for i, (cover, steady) in plans.items() for p in [p for _, p in cover] + steady
                           if chosen[i].usable(p)})
-    _, fused_out = network_outputs(model, [chosen[i].fused[p] for i, p in fused_keys], max_batch=max_batch)
-    _, single_out = network_outputs(model, [chosen[i].single[p] for i, p in single_keys], max_batch=max_batch)
+    # both clouds are normalised by the frame's own box (the fused partial by the current box): its sizes
+    _, fused_out = network_outputs(model, [chosen[i].fused[p] for i, p in fused_keys],
+                                   np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(-1, 3),
+                                   max_batch=max_batch)
+    _, single_out = network_outputs(model, [chosen[i].single[p] for i, p in single_keys],
+                                    np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(-1, 3),
+                                    max_batch=max_batch)
     fused_done = dict(zip(fused_keys, fused_out))
     single_done = dict(zip(single_keys, single_out))
     seconds["network"] = time.perf_counter() - t2

@@ -12,22 +12,31 @@ import numpy as np
 
 from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_sensor
 from gd_completion.errors import DataFormatError
-from gd_completion.geometry import Box3D, box_problem, finite_mask
+from gd_completion.geometry import Box3D, box_problem, finite_mask, normalize
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import Preprocessing, crop_vehicles
 
 from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs
-from .metrics import COVERAGE_SCALE, FIDELITY_SCALE, coverage_error, fidelity
+from .box_noise import BoxNoise, noisy_box, reframe
+from .metrics import COVERAGE_SCALE, FIDELITY_SCALE
+from .nearest import nearest_sq
+from .observed import MAX_POSES, TAU, RangeImages, pose_subset, range_images, two_sided
+from .priors import prior_outputs
 
 # PandaSet classes that count as vehicles (data README); "Other Vehicle - ..." classes are included too.
 VEHICLE_CLASSES: tuple[str, ...] = ("Car", "Pickup Truck", "Medium-sized Truck", "Semi-truck", "Bus")
 OTHER_VEHICLE_PREFIX = "Other Vehicle - "
 PANDAR64 = 0
+PANDARGT = 1
+SENSORS: tuple[int, ...] = (PANDAR64, PANDARGT)
+SENSOR_NAMES = {PANDAR64: "Pandar64", PANDARGT: "PandarGT"}
 MIN_INPUT_POINTS = 50
 # Input-size bins (points in the box, half-open [lo, hi)).
 SIZE_BINS: tuple[tuple[str, int, float], ...] = (("50-200", 50, 200), ("200-1000", 200, 1000),
                                                   (">1000", 1000, math.inf))
-REFERENCE_POINTS = 4096
+REFERENCE_POINTS = 4096           # voxel-uniform reference
+RANDOM_REFERENCE_POINTS = 20_000  # random reference (the issue's scorer)
+DEFAULT_BOX_NOISE = BoxNoise()
 REFERENCE_VOXEL = 0.01  # normalised units (vehicle length = 1): about 4-5 cm on a car
 
 
@@ -46,17 +55,21 @@ def size_bin(n_points: int) -> str:
 
 @dataclass
 class VehicleTrack:
-    """One stationary vehicle over the drive: its in-box points per frame, in the normalised box frame."""
+    """One stationary vehicle over the drive: its in-box points per (frame, sensor) entry, in the normalised
+    box frame, with the world box, the sensor position and (box-noise runs) the crop of a noisy box."""
 
     uuid: str
     instance_id: int
     label: str
     frames: list[int] = field(default_factory=list)
-    points: list[np.ndarray] = field(default_factory=list)  # normalised (M, 3) per frame
-    boxes: list[Box3D] = field(default_factory=list)  # world-frame box per frame
+    points: list[np.ndarray] = field(default_factory=list)  # normalised (M, 3) per entry
+    boxes: list[Box3D] = field(default_factory=list)  # world-frame box per entry
+    sensors: list[int] = field(default_factory=list)  # PandaSet sensor id per entry
+    origins: list[np.ndarray] = field(default_factory=list)  # world sensor position (poses.json) per entry
+    noisy: list[tuple[np.ndarray, Box3D] | None] = field(default_factory=list)  # (normalised points, noisy box)
 
     def aggregate(self) -> np.ndarray:
-        """All frames' points in the box frame (normalised), (sum M, 3) float32."""
+        """All entries' points in the box frame (normalised), (sum M, 3) float32."""
         if not self.points:
             return np.zeros((0, 3), np.float32)
         return np.concatenate(self.points).astype(np.float32, copy=False)
@@ -69,9 +82,19 @@ class VehicleTrack:
             ok = [ok[i] for i in picks]
         return ok
 
+    def pose_scans(self, max_poses: int = MAX_POSES, sensor: int = PANDAR64) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(sensor position, points) in the normalised box frame for at most `max_poses` entries of `sensor`
+        (evenly spaced over its frames; poses.json holds that lidar's pose): the scans of `observed`."""
+        entries = [k for k, s in enumerate(self.sensors) if s == sensor]
+        rich = [k for k in entries if len(self.points[k]) >= MIN_INPUT_POINTS] or entries
+        return [(normalize(self.origins[k][None], self.boxes[k])[0], self.points[k])
+                for k in (rich[i] for i in pose_subset(len(rich), max_poses))]
 
-def stationary_vehicles(sequence: PandaSetSequence, sensor: int = PANDAR64) -> dict[str, str]:
-    """uuid -> PandaSet class of every track marked stationary with a vehicle class (sensor `sensor` or -1)."""
+
+def stationary_vehicles(sequence: PandaSetSequence, sensor: int | Sequence[int] = PANDAR64) -> dict[str, str]:
+    """uuid -> PandaSet class of every track marked stationary with a vehicle class (cuboid sensor id -1 or
+    one of `sensor`)."""
+    wanted = {-1, *((sensor,) if isinstance(sensor, int) else sensor)}
     found: dict[str, str] = {}
     indices = sequence.cuboid_indices()
     if not indices:
@@ -80,43 +103,61 @@ def stationary_vehicles(sequence: PandaSetSequence, sensor: int = PANDAR64) -> d
         for record in sequence.cuboids(index):
             label = str(record.get("label", ""))
             if (record.get("stationary") is True and is_vehicle_class(label)
-                    and int(record.get("cuboids.sensor_id", -1)) in (-1, sensor)):
+                    and int(record.get("cuboids.sensor_id", -1)) in wanted):
                 found.setdefault(str(record.get("uuid")), label)
     return found
 
 
 def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: Preprocessing, *,
-                   frames: Sequence[int] | None = None, sensor: int = PANDAR64) -> dict[str, VehicleTrack]:
-    """In-box points of `vehicles` (uuid -> class) in every frame, through the preprocessing contract (`prep`).
+                   frames: Sequence[int] | None = None, sensors: Sequence[int] = (PANDAR64,),
+                   noise: BoxNoise | None = None, noise_min_points: int = MIN_INPUT_POINTS
+                   ) -> dict[str, VehicleTrack]:
+    """In-box points of `vehicles` (uuid -> class) per frame and sensor, through the preprocessing contract
+    (`prep`).
 
     Points and cuboids are both in the world frame, so each frame's world box takes its points into the
-    box frame; the uuid links frames. Frames without a lidar file are skipped.
+    box frame; the uuid links frames; a sensor uses the cuboids with sensor id -1 or its own. Frames without
+    a lidar file are skipped. With `noise`, entries with >= `noise_min_points` points are cropped again with
+    a noisy box (`box_noise.noisy_box`, key (track id, frame, sensor)); None where that crop is empty.
     """
     tracks = {uuid: VehicleTrack(uuid, sequence.track_ids.get(uuid, 0), label) for uuid, label in vehicles.items()}
     by_id = {t.instance_id: t for t in tracks.values()}
     eye, zero = np.eye(3), np.zeros(3)
     for index in (sequence.frame_indices() if frames is None else frames):
-        boxes = [world_box_to_sensor(r, eye, zero, sequence.track_ids.get(str(r.get("uuid")), 0))
-                 for r in sequence.cuboids(index)
-                 if str(r.get("uuid")) in tracks and int(r.get("cuboids.sensor_id", -1)) in (-1, sensor)]
-        boxes = [b for b in boxes if box_problem(b) is None]
-        if not boxes:
+        records = [r for r in sequence.cuboids(index) if str(r.get("uuid")) in tracks]
+        if not records:
             continue
         arrays = sequence.load_lidar(index)
-        points = arrays["xyz"][arrays["sensor"] == sensor]
-        points = points[finite_mask(points)]
-        for vehicle in crop_vehicles(points, boxes, prep)[0]:
-            track = by_id[vehicle.box.instance_id]
-            track.frames.append(int(index))
-            track.points.append(vehicle.normalized)
-            track.boxes.append(vehicle.box)
+        origin = sequence.pose(index)[1]
+        for sensor in sensors:
+            boxes = [world_box_to_sensor(r, eye, zero, sequence.track_ids.get(str(r.get("uuid")), 0))
+                     for r in records if int(r.get("cuboids.sensor_id", -1)) in (-1, sensor)]
+            boxes = [b for b in boxes if box_problem(b) is None]
+            if not boxes:
+                continue
+            points = arrays["xyz"][arrays["sensor"] == sensor]
+            points = points[finite_mask(points)]
+            cropped = crop_vehicles(points, boxes, prep)[0]
+            noisy: dict[int, tuple[np.ndarray, Box3D]] = {}
+            if noise is not None:
+                shaken = [noisy_box(v.box, noise, (v.box.instance_id, index, sensor)) for v in cropped
+                          if len(v.normalized) >= noise_min_points]
+                noisy = {v.box.instance_id: (v.normalized, v.box) for v in crop_vehicles(points, shaken, prep)[0]}
+            for vehicle in cropped:
+                track = by_id[vehicle.box.instance_id]
+                track.frames.append(int(index))
+                track.points.append(vehicle.normalized)
+                track.boxes.append(vehicle.box)
+                track.sensors.append(int(sensor))
+                track.origins.append(np.asarray(origin, np.float64))
+                track.noisy.append(noisy.get(vehicle.box.instance_id))
     return tracks
 
 
 def multi_frame_reference(track: VehicleTrack | Any, n: int = REFERENCE_POINTS) -> np.ndarray | None:
     """The track's multi-frame aggregate (`aggregate()` of a track with `frames` and `instance_id`) sampled to
     `n` near-uniform points (seeded by the track), or None for a vehicle seen in a single frame."""
-    if len(track.frames) < 2:
+    if len(set(track.frames)) < 2:
         return None
     return reference_sample(track.aggregate(), n, seed=track.instance_id)
 
@@ -140,17 +181,37 @@ def reference_sample(points: np.ndarray, n: int = REFERENCE_POINTS, voxel: float
     return shuffled[np.concatenate([first, extra])]
 
 
+def random_reference(points: np.ndarray, n: int = RANDOM_REFERENCE_POINTS, seed: int = 0) -> np.ndarray:
+    """`n` points of an aggregate drawn at random without replacement (all of them when it has fewer)."""
+    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    if len(points) == 0:
+        raise ValueError("random_reference: empty aggregate")
+    return points[np.sort(np.random.default_rng(seed).choice(len(points), min(n, len(points)), replace=False))]
+
+
 @dataclass
 class PandaSetItem:
-    """One (vehicle, frame) evaluation: input size and, per baseline, coverage error and fidelity (scaled)."""
+    """One (vehicle, frame, sensor) observation: input size and, per method, the scaled metrics.
+
+    coverage: random reference; coverage_voxel: voxel-uniform reference; noisy_coverage: the box-noise run
+    (random reference, clean box's frame; NaN when the noisy crop was empty); precision, judged, recall,
+    f_score: the two-sided metric of `observed` (fractions)."""
 
     uuid: str
     label: str
     frame: int
+    sensor: int
     n_points: int
     size_bin: str
     coverage: dict[str, float]
     fidelity: dict[str, float]
+    coverage_voxel: dict[str, float] = field(default_factory=dict)
+    precision: dict[str, float] = field(default_factory=dict)
+    judged: dict[str, float] = field(default_factory=dict)
+    recall: dict[str, float] = field(default_factory=dict)
+    f_score: dict[str, float] = field(default_factory=dict)
+    noisy_coverage: dict[str, float] = field(default_factory=dict)
+    output_points: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass
@@ -164,80 +225,125 @@ class PandaSetResult:
     seconds: dict[str, float]
     examples: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]
     notes: list[str] = field(default_factory=list)
+    worst: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+    sensors: tuple[int, ...] = SENSORS
+    noise: BoxNoise | None = None
+    random_points: int = RANDOM_REFERENCE_POINTS
+    voxel_points: int = REFERENCE_POINTS
 
 
-def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle: int | None = 10,
+def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle: int | None = None,
                       max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS,
-                      max_batch: int = 32, n_examples: int = 4, frames: Sequence[int] | None = None,
-                      preprocessing: Preprocessing | None = None) -> PandaSetResult:
-    """Complete single frames of every stationary PandaSet vehicle and compare with its multi-frame aggregate.
+                      random_points: int = RANDOM_REFERENCE_POINTS, max_batch: int = 32, n_examples: int = 4,
+                      frames: Sequence[int] | None = None, preprocessing: Preprocessing | None = None,
+                      sensors: Sequence[int] = SENSORS, noise: BoxNoise | None = DEFAULT_BOX_NOISE) -> PandaSetResult:
+    """Complete single observations (frame, sensor) of every stationary PandaSet vehicle and compare every
+    method with the vehicle's multi-frame aggregate (all frames, all `sensors`).
 
-    `preprocessing`: the model's contract (its checkpoint's; default the contract's defaults); every frame
-    with at least one point is collected (the aggregate), inputs need MIN_INPUT_POINTS.
-
-    Inputs with >= 50 Pandar64 points in the box; at most `max_frames_per_vehicle` frames per vehicle
-    (evenly spaced); vehicles whose aggregate comes from a single frame are left out (no multi-frame reference).
+    `preprocessing`: the model's contract (its checkpoint's; default the contract's defaults); every entry
+    with at least one point goes into the aggregate, inputs need MIN_INPUT_POINTS points. By default every
+    observation is evaluated; `max_frames_per_vehicle` keeps at most that many per vehicle (evenly spaced),
+    `max_vehicles` the first N stationary vehicles. Vehicles seen in a single frame are left out (no
+    multi-frame reference). `noise`: also run the evaluation with noisy boxes (None skips it).
     """
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
+    sensors = tuple(sensors)
     sequence = PandaSetSequence(root)
-    vehicles = stationary_vehicles(sequence)
+    vehicles = stationary_vehicles(sequence, sensors)
     n_candidates = len(vehicles)
     if max_vehicles is not None:
         vehicles = dict(list(vehicles.items())[:max_vehicles])
     prep = replace(preprocessing or Preprocessing(), min_points=1)
-    tracks = collect_tracks(sequence, vehicles, prep, frames=frames)
+    tracks = collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=noise)
     seconds["load+crop"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
     notes: list[str] = []
-    partials: list[np.ndarray] = []
-    refs: list[np.ndarray] = []
     meta: list[tuple[VehicleTrack, int]] = []
-    used = 0
+    refs: dict[str, tuple[np.ndarray, np.ndarray, RangeImages]] = {}
     single_frame = 0
     for track in tracks.values():
         picks = track.input_frames(MIN_INPUT_POINTS, max_frames_per_vehicle)
         if not picks:
             continue
-        reference = multi_frame_reference(track, reference_points)
-        if reference is None:
+        voxel = multi_frame_reference(track, reference_points)
+        if voxel is None:
             single_frame += 1
             continue
-        used += 1
-        for k in picks:
-            partials.append(track.points[k])
-            refs.append(reference)
-            meta.append((track, k))
+        aggregate = track.aggregate()
+        refs[track.uuid] = (random_reference(aggregate, random_points, seed=track.instance_id), voxel,
+                            range_images(track.pose_scans()))
+        meta += [(track, k) for k in picks]
     if single_frame:
         notes.append(f"{single_frame} vehicles seen in a single frame only were left out (no multi-frame reference)")
-    generated, completion = network_outputs(model, partials, max_batch=max_batch)
-    seconds["network"] = time.perf_counter() - t1
+    seconds["references"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
+    partials = [t.points[k] for t, k in meta]
+    sizes = np.array([t.boxes[k].size for t, k in meta], np.float64).reshape(-1, 3)
+    generated, completion = network_outputs(model, partials, sizes, max_batch=max_batch)
+    noisy_meta = [i for i, (t, k) in enumerate(meta) if noise is not None and t.noisy[k] is not None]
+    noisy_in = [meta[i][0].noisy[meta[i][1]] for i in noisy_meta]
+    noisy_gen, noisy_out = network_outputs(model, [p for p, _ in noisy_in],
+                                           np.array([b.size for _, b in noisy_in], np.float64).reshape(-1, 3),
+                                           max_batch=max_batch)
+    noisy_nets = {i: (noisy_gen[j], noisy_out[j]) for j, i in enumerate(noisy_meta)}
+    seconds["network"] = time.perf_counter() - t2
+
+    t3 = time.perf_counter()
     items: list[PandaSetItem] = []
-    reference_batch = np.stack(refs) if refs else np.zeros((0, reference_points, 3), np.float32)
-    net_cov = {"generation": coverage_error(reference_batch, generated).numpy() * COVERAGE_SCALE,
-               "ggd": coverage_error(reference_batch, completion).numpy() * COVERAGE_SCALE}
-    for i, ((track, k), partial, reference) in enumerate(zip(meta, partials, refs)):
-        outputs = {"input": partial, "mirror": mirror_symmetry(partial)}
-        cov = {name: float(coverage_error(reference, out)) * COVERAGE_SCALE for name, out in outputs.items()}
-        fid = {name: float(fidelity(partial, out)) * FIDELITY_SCALE for name, out in outputs.items()}
-        for name, out in (("generation", generated[i]), ("ggd", completion[i])):
-            cov[name] = float(net_cov[name][i])
-            fid[name] = float(fidelity(partial, out)) * FIDELITY_SCALE
-        items.append(PandaSetItem(track.uuid, track.label, track.frames[k], len(partial), size_bin(len(partial)),
-                                  {n: cov[n] for n in BASELINE_NAMES}, {n: fid[n] for n in BASELINE_NAMES}))
-    seconds["metrics"] = time.perf_counter() - t2
-    examples = _examples(items, meta, partials, completion, refs, n_examples)
-    return PandaSetResult(items, used, n_candidates, max_frames_per_vehicle, seconds, examples, notes)
+    n_out = model.config.num_output
+    for i, (track, k) in enumerate(meta):
+        partial, box = track.points[k], track.boxes[k]
+        ref_random, ref_voxel, images = refs[track.uuid]
+        outputs = {"input": partial, "mirror": mirror_symmetry(partial), **prior_outputs(partial, box.size, n_out),
+                   "generation": generated[i], "ggd": completion[i]}
+        item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], len(partial),
+                            size_bin(len(partial)), {}, {})
+        for name in BASELINE_NAMES:
+            out = outputs[name]
+            to_out = nearest_sq(ref_random, out)
+            item.coverage[name] = float(to_out.mean()) * COVERAGE_SCALE
+            item.coverage_voxel[name] = float(nearest_sq(ref_voxel, out).mean()) * COVERAGE_SCALE
+            item.fidelity[name] = float(nearest_sq(partial, out).mean()) * FIDELITY_SCALE
+            two = two_sided(out, ref_random, images, TAU, to_out)
+            item.precision[name], item.judged[name] = two.precision, two.judged_share
+            item.recall[name], item.f_score[name] = two.recall, two.f_score
+            item.output_points[name] = len(out)
+        if i in noisy_nets:
+            noisy_partial, shaken = track.noisy[k]
+            noisy = {"input": noisy_partial, "mirror": mirror_symmetry(noisy_partial),
+                     **prior_outputs(noisy_partial, shaken.size, n_out), "generation": noisy_nets[i][0],
+                     "ggd": noisy_nets[i][1]}
+            stacked = reframe(np.concatenate([noisy[n] for n in BASELINE_NAMES]), shaken, box)
+            bounds = np.cumsum([0] + [len(noisy[n]) for n in BASELINE_NAMES])
+            for j, name in enumerate(BASELINE_NAMES):
+                out = stacked[bounds[j]:bounds[j + 1]]
+                item.noisy_coverage[name] = float(nearest_sq(ref_random, out).mean()) * COVERAGE_SCALE
+        items.append(item)
+    seconds["metrics"] = time.perf_counter() - t3
+    if noise is not None and len(noisy_meta) < len(meta):
+        notes.append(f"box noise: {len(meta) - len(noisy_meta)} observations had no point in the noisy box and are "
+                     "left out of the box-noise table (their clean figures too)")
+    examples = _examples(items, meta, completion, refs, n_examples)
+    worst = _worst(items, meta, completion, refs, n_examples)
+    return PandaSetResult(items, len(refs), n_candidates, max_frames_per_vehicle, seconds, examples, notes, worst,
+                          sensors, noise, random_points, reference_points)
 
 
-def _examples(items: list[PandaSetItem], meta: list[tuple[VehicleTrack, int]], partials: list[np.ndarray],
-              completion: np.ndarray, refs: list[np.ndarray], n: int
+def _render_item(item: PandaSetItem, partial: np.ndarray, completion: np.ndarray, reference: np.ndarray,
+                 extra: str = "") -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+    title = (f"{item.label[:18]} {item.uuid[:6]} f{item.frame:02d} {SENSOR_NAMES.get(item.sensor, item.sensor)}"
+             + extra)
+    return title, partial, completion, reference
+
+
+def _examples(items: list[PandaSetItem], meta: list[tuple[VehicleTrack, int]], completion: np.ndarray,
+              refs: dict[str, tuple[np.ndarray, np.ndarray, RangeImages]], n: int
               ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
-    """Up to `n` render items (title, input, GGD-Net completion, reference): each size bin in turn, one
-    frame per vehicle, the vehicles with the largest aggregates first."""
+    """Up to `n` render items (title, input, GGD-Net completion, voxel reference): each size bin in turn,
+    one observation per vehicle, the vehicles with the largest aggregates first."""
     order = sorted(range(len(items)), key=lambda i: -sum(len(p) for p in meta[i][0].points))
     chosen: list[int] = []
     seen: set[str] = set()
@@ -250,5 +356,19 @@ def _examples(items: list[PandaSetItem], meta: list[tuple[VehicleTrack, int]], p
                     chosen.append(i)
                     seen.add(items[i].uuid)
                     break
-    return [(f"{items[i].label} {items[i].uuid[:8]} f{items[i].frame:02d}", partials[i], completion[i], refs[i])
+    return [_render_item(items[i], meta[i][0].points[meta[i][1]], completion[i], refs[items[i].uuid][1])
             for i in chosen]
+
+
+def _worst(items: list[PandaSetItem], meta: list[tuple[VehicleTrack, int]], completion: np.ndarray,
+           refs: dict[str, tuple[np.ndarray, np.ndarray, RangeImages]], n: int
+           ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """The `n` observations with the highest GGD-Net coverage error (random reference), one per vehicle."""
+    chosen: list[int] = []
+    seen: set[str] = set()
+    for i in sorted(range(len(items)), key=lambda i: -items[i].coverage["ggd"]):
+        if items[i].uuid not in seen and len(chosen) < n:
+            chosen.append(i)
+            seen.add(items[i].uuid)
+    return [_render_item(items[i], meta[i][0].points[meta[i][1]], completion[i], refs[items[i].uuid][1],
+                         f" cov {items[i].coverage['ggd']:.2f}") for i in chosen]

@@ -14,7 +14,8 @@ from gd_completion.render import render_vehicles
 from .baselines import BASELINE_NAMES, BASELINE_TITLES
 from .fusion_eval import RATIO_FRAMES, FusionResult
 from .metrics import OBSERVED_RADIUS
-from .pandaset_eval import SIZE_BINS, PandaSetResult
+from .observed import OBSERVED_DEFINITION, TAU
+from .pandaset_eval import SENSOR_NAMES, SIZE_BINS, PandaSetItem, PandaSetResult
 from .synthetic import AblationRow, SyntheticResult
 
 
@@ -32,19 +33,19 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> 
     return "\n".join([line(headers), sep] + [line(r) for r in text])
 
 
-def synthetic_section(result: SyntheticResult) -> str:
-    """Table of CD x1e4, CD(D,G), CD(G,D), F-score@1% and Fidelity x1e3 per baseline on the held-out synthetic set."""
+def synthetic_section(result: SyntheticResult, title: str = "Synthetic held-out set") -> str:
+    """Table of CD x1e4, CD(D,G), CD(G,D), F-score@1% and Fidelity x1e3 per method on a held-out synthetic set."""
     rows = [[BASELINE_TITLES[n], result.metrics[n]["cd"], result.metrics[n]["cd_dg"], result.metrics[n]["cd_gd"],
              result.metrics[n]["f_score"], result.metrics[n]["fidelity"]] for n in BASELINE_NAMES]
     sizes = ", ".join(f"{BASELINE_TITLES[n]} {result.points[n]}" for n in BASELINE_NAMES if n in result.points)
-    return (f"## Synthetic held-out set\n\n{result.n_samples} pairs from {result.source}, ground truth of "
+    return (f"## {title}\n\n{result.n_samples} pairs from {result.source}, ground truth of "
             f"{result.n_gt} points; normalised frame (vehicle length = 1). Output points: {sizes}.\n\n"
             + markdown_table(["method", "CD x1e4", "CD(D,G) x1e4", "CD(G,D) x1e4", "F-score@1%", "Fidelity x1e3"],
                              rows)
             + "\n\nCD(D,G): output -> ground truth (fidelity-like); CD(G,D): ground truth -> output (completeness); "
             "F-score@1%: harmonic mean of the fractions of output and ground-truth points within 0.01 (1 % of "
             "the vehicle length) of the other cloud."
-            + floor_text(result) + "\n\n" + region_section(result))
+            + floor_text(result) + "\n\n" + region_section(result, title))
 
 
 def floor_text(result: SyntheticResult) -> str:
@@ -62,11 +63,13 @@ def floor_text(result: SyntheticResult) -> str:
             f"branch's excess error (CD itself: {100 * (1 - ggd / gen):.1f} % lower).")
 
 
-def region_section(result: SyntheticResult) -> str:
+def region_section(result: SyntheticResult, title: str = "") -> str:
     """CD(G,D) x1e4 split into ground truth near the input (observed) and far from it (unobserved)."""
     rows = [[BASELINE_TITLES[n], result.metrics[n]["cd_gd_observed"], result.metrics[n]["cd_gd_unobserved"]]
             for n in BASELINE_NAMES]
-    return (f"### Completeness by region\n\nCD(G,D) x1e4 of the ground-truth points within {OBSERVED_RADIUS} of an "
+    where = f" ({title})" if title else ""
+    return (f"### Completeness by region{where}\n\nCD(G,D) x1e4 of the ground-truth points within "
+            f"{OBSERVED_RADIUS} of an "
             f"input point (observed, {100 * result.observed_fraction:.0f} % of them) and of the others "
             "(unobserved).\n\n"
             + markdown_table(["method", "observed x1e4", "unobserved x1e4"], rows))
@@ -80,27 +83,90 @@ def ablation_section(rows: Sequence[AblationRow], n_samples: int) -> str:
     return f"## Control-point ablation (synthetic, {n_samples} pairs, GGD-Net completion)\n\n{table}"
 
 
-def _mean(values: list[float]) -> float:
-    return float(np.mean(values)) if values else float("nan")
+def _groups(items: list[PandaSetItem]) -> dict[str, list[PandaSetItem]]:
+    return {"all": items, **{b: [i for i in items if i.size_bin == b] for b, *_ in SIZE_BINS}}
+
+
+def _points_cell(items: list[PandaSetItem], name: str) -> str:
+    counts = [i.output_points[name] for i in items if name in i.output_points]
+    if not counts:
+        return "-"
+    if min(counts) == max(counts):
+        return str(counts[0])
+    return f"own: mean {np.mean(counts):.0f} ({min(counts)}-{max(counts)})"
+
+
+def _metric_table(items: list[PandaSetItem], attr: str, scale: float = 1.0, points: bool = False) -> str:
+    groups = _groups(items)
+    headers = ["method"] + (["output points"] if points else []) + [f"{g} (n={len(v)})" for g, v in groups.items()]
+    rows = [[BASELINE_TITLES[n]] + ([_points_cell(items, n)] if points else [])
+            + [_nanmean([getattr(i, attr).get(n, math.nan) * scale for i in v]) for v in groups.values()]
+            for n in BASELINE_NAMES]
+    return markdown_table(headers, rows)
+
+
+def _nanmean(values: list[float]) -> float:
+    finite = [v for v in values if not math.isnan(v)]
+    return float(np.mean(finite)) if finite else float("nan")
 
 
 def pandaset_section(result: PandaSetResult, num_control: int | None = None, num_input: int | None = None) -> str:
-    """Coverage error and Fidelity (x1e3) per baseline, overall and by input size."""
-    bins = [name for name, *_ in SIZE_BINS]
-    groups = {"all": result.items, **{b: [i for i in result.items if i.size_bin == b] for b in bins}}
-    headers = ["method"] + [f"{g} (n={len(items)})" for g, items in groups.items()]
+    """Coverage (random and voxel-uniform reference), fidelity, the two-sided metric, per sensor and under box
+    noise: every method, overall and by input size."""
+    items = result.items
+    sensors = " and ".join(SENSOR_NAMES.get(s, str(s)) for s in result.sensors)
+    cap = result.max_frames_per_vehicle
+    limit = f"at most {cap} per vehicle" if cap else "every observation"
+    per_sensor = Counter(SENSOR_NAMES.get(i.sensor, str(i.sensor)) for i in items)
     parts = [f"## PandaSet 002: single frame vs multi-frame aggregate\n\n"
-             f"{len(result.items)} vehicle-frames of {result.n_vehicles} stationary vehicles "
-             f"({result.n_candidates} stationary vehicle tracks in the sequence; Pandar64 points, >= 50 points "
-             f"in the box, at most {result.max_frames_per_vehicle or 'all'} frames per vehicle). Reference: the "
-             f"vehicle's points over all frames in its box frame, 4096 voxel-uniform samples. Normalised frame."]
-    for title, attr in (("Coverage error x1e3 (reference -> output)", "coverage"),
-                        ("Fidelity x1e3 (input -> output)", "fidelity")):
-        rows = [[BASELINE_TITLES[n]] + [_mean([getattr(i, attr)[n] for i in items]) for items in groups.values()]
-                for n in BASELINE_NAMES]
-        parts.append(f"### {title}\n\n" + markdown_table(headers, rows))
-    classes = Counter(i.label for i in result.items)
-    parts.append("Vehicle-frames per class: " + ", ".join(f"{k} {v}" for k, v in classes.most_common()) + ".")
+             f"{len(items)} observations (frame, sensor) of {result.n_vehicles} stationary vehicles "
+             f"({result.n_candidates} stationary vehicle tracks in the sequence; {sensors} points, "
+             + ", ".join(f"{k} {v}" for k, v in per_sensor.most_common())
+             + f"; >= 50 points in the box after the crop and ground cut; "
+             f"{limit}; exact boxes). Reference: the vehicle's points over all frames and sensors in its box frame. "
+             f"Normalised frame (vehicle length = 1). Every method without an input count of its own outputs "
+             f"2,048 points (the model's N_o); raw input and mirror keep their own counts."]
+    parts.append(f"### Coverage error x1e3 (reference -> output), random reference ({result.random_points:,} points)"
+                 "\n\n" + _metric_table(items, "coverage", points=True))
+    parts.append(f"### Coverage error x1e3, voxel-uniform reference ({result.voxel_points} points, one per "
+                 f"0.01 voxel first)\n\n" + _metric_table(items, "coverage_voxel"))
+    parts.append("### Fidelity x1e3 (all in-box points above the ground cut of the frame -> output)\n\n"
+                 + _metric_table(items, "fidelity"))
+    groups = _groups(items)
+    rows = [[BASELINE_TITLES[n], _nanmean([i.precision[n] for i in items]), _nanmean([i.judged[n] for i in items]),
+             _nanmean([i.recall[n] for i in items])] + [_nanmean([i.f_score[n] for i in v]) for v in groups.values()]
+            for n in BASELINE_NAMES]
+    parts.append(f"### Two-sided: precision and F-score at tau = {TAU} (2 % of the length), random reference\n\n"
+                 "Precision: share of the output points within tau of the reference, counted only where the "
+                 "reference observed that part of the vehicle (judged points). Judged: share of the output judged. "
+                 "Recall: share of the reference within tau of the output. F-score = 2PR / (P + R), mean over "
+                 "observations.\n\n"
+                 + markdown_table(["method", "precision", "judged", "recall"]
+                                  + [f"F-score {g} (n={len(v)})" for g, v in groups.items()], rows)
+                 + "\n\n" + OBSERVED_DEFINITION)
+    rows = [[BASELINE_TITLES[n]] + [_nanmean([i.coverage[n] for i in items if i.sensor == s]) for s in result.sensors]
+            for n in BASELINE_NAMES]
+    parts.append("### Coverage error x1e3 by sensor (random reference)\n\n"
+                 + markdown_table(["method"] + [f"{SENSOR_NAMES.get(s, s)} (n={sum(i.sensor == s for i in items)})"
+                                                for s in result.sensors], rows))
+    if result.noise is not None:
+        noisy = [i for i in items if i.noisy_coverage]
+        rows = []
+        for n in BASELINE_NAMES:
+            clean = _nanmean([i.coverage[n] for i in noisy])
+            shaken = _nanmean([i.noisy_coverage[n] for i in noisy])
+            rows.append([BASELINE_TITLES[n], clean, shaken, f"{100 * (shaken / clean - 1):+.1f} %"]
+                        + [_nanmean([i.noisy_coverage[n] for i in noisy if i.size_bin == b]) for b, *_ in SIZE_BINS])
+        parts.append(f"### Box noise: coverage error x1e3 (random reference) with detector-like box errors\n\n"
+                     f"{len(noisy)} observations. Each box perturbed ({result.noise.describe()}, drawn per (track, "
+                     "frame, sensor)); the points are cropped, ground-cut and normalised with the noisy box, every "
+                     "method completes (box priors from the noisy box, networks given its size), the output is "
+                     "denormalised with the noisy box and renormalised with the true box, and scored against the "
+                     "clean reference.\n\n"
+                     + markdown_table(["method", "clean", "noisy", "degradation"]
+                                      + [f"noisy {b}" for b, *_ in SIZE_BINS], rows))
+    classes = Counter(i.label for i in items)
+    parts.append("Observations per class: " + ", ".join(f"{k} {v}" for k, v in classes.most_common()) + ".")
     if num_control and num_input:
         parts.append(f"The networks see each input resampled to {num_input} points (FPS down, cyclic repetition up) "
                      f"and copy {num_control} FPS control points from it, so inputs of at most {num_control} points "

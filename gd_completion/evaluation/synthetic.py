@@ -25,6 +25,7 @@ from .metrics import (
     observed_mask,
     region_means,
 )
+from .priors import box_fill, template_points, thinned_union
 
 # Seeds from EVAL_SEED up are reserved for evaluation; training sets must use seeds below it.
 EVAL_SEED = 9_000_000
@@ -50,12 +51,14 @@ class SyntheticResult:
 
 
 class HeldOut(NamedTuple):
-    """Held-out pairs; `surface` is a second uniform sample of each true surface (None when not available)."""
+    """Held-out pairs; `surface` is a second uniform sample of each true surface (None when not available);
+    `sizes` (S, 3) the boxes' (length, width, height) in metres, which normalised each pair."""
 
     partial: np.ndarray
     complete: np.ndarray
     source: str
     surface: np.ndarray | None = None
+    sizes: np.ndarray | None = None
 
 
 @dataclass
@@ -83,22 +86,55 @@ def _pairs(data: dict[str, Any], where: str) -> tuple[np.ndarray, np.ndarray]:
     return partial, complete
 
 
+def _sizes(data: dict[str, Any], count: int, where: str) -> np.ndarray:
+    """The per-sample box sizes (S, 3) of a synth dataset dict (its `size` array); never guessed."""
+    if "size" not in data:
+        raise EvaluationError(f"{where}: no per-sample box sizes ('size'): box-conditioned models and the box "
+                              "priors need them; rebuild the set with gd_completion.synth")
+    sizes = np.asarray(data["size"], np.float64).reshape(-1, 3)
+    if len(sizes) < count:
+        raise EvaluationError(f"{where}: {len(sizes)} box sizes for {count} pairs")
+    return sizes[:count]
+
+
 def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path | None = None,
                  path: str | Path | None = None) -> HeldOut:
     """Held-out pairs: `load_dataset(path)` when `path` is given, else `build_dataset(n_samples, seed,
-    surface_resample=True)` on a seed reserved for evaluation (with the held-out mesh folder `mesh_dir`)."""
+    surface_resample=True)` on a seed reserved for evaluation (with the mesh folder `mesh_dir`)."""
     if path is not None:
         data = load_dataset(Path(path))
         partial, complete = _pairs(data, str(path))
         surface = data.get("surface_resample")
-        return HeldOut(partial[:n_samples], complete[:n_samples], f"{path} (first {min(n_samples, len(partial))})",
-                       None if surface is None else np.asarray(surface, np.float32)[:n_samples])
+        n = min(n_samples, len(partial))
+        return HeldOut(partial[:n], complete[:n], f"{path} (first {n})",
+                       None if surface is None else np.asarray(surface, np.float32)[:n], _sizes(data, n, str(path)))
     if mesh_dir is not None and not Path(mesh_dir).is_dir():
         raise EvaluationError(f"held-out mesh folder {mesh_dir}: not a directory")
     data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, surface_resample=True)
     partial, complete = _pairs(data, "build_dataset")
     where = f"build_dataset(seed={seed}" + (f", meshes {mesh_dir})" if mesh_dir else ", generated shapes)")
-    return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32))
+    return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32),
+                   _sizes(data, len(partial), where))
+
+
+def load_heldout_meshes(n_samples: int, mesh_dir: str | Path, *, seed: int = EVAL_SEED) -> HeldOut:
+    """Pairs made from the held-out meshes only (`synth.meshio.HELDOUT_MESHES` of `mesh_dir`, never trained
+    on): `make_sample(sample_rng(seed, i), those meshes, surface_resample=True)` for i < n_samples."""
+    from gd_completion.synth.dataset import make_sample, sample_rng
+    from gd_completion.synth.meshio import HELDOUT_MESHES, load_mesh_folder
+
+    if not Path(mesh_dir).is_dir():
+        raise EvaluationError(f"mesh folder {mesh_dir}: not a directory")
+    meshes = load_mesh_folder(mesh_dir, only=HELDOUT_MESHES)
+    if len(meshes) != len(HELDOUT_MESHES):
+        raise EvaluationError(f"{mesh_dir}: {len(meshes)} of the {len(HELDOUT_MESHES)} held-out meshes found")
+    samples = [make_sample(sample_rng(seed, i), meshes, surface_resample=True) for i in range(n_samples)]
+    if not samples:
+        raise EvaluationError("no held-out mesh samples requested")
+    return HeldOut(np.stack([p for p, _, _ in samples]), np.stack([g for _, g, _ in samples]),
+                   f"the {len(meshes)} held-out meshes of {Path(mesh_dir).name} ({', '.join(HELDOUT_MESHES)}), "
+                   f"seed {seed}", np.stack([m["surface_resample"] for _, _, m in samples]),
+                   np.array([m["size"] for _, _, m in samples], np.float64).reshape(-1, 3))
 
 
 def _chamfer_row(output: np.ndarray, complete: np.ndarray) -> tuple[dict[str, float], Tensor]:
@@ -111,16 +147,24 @@ def _chamfer_row(output: np.ndarray, complete: np.ndarray) -> tuple[dict[str, fl
             "f_score": float(f_score_of(to_truth, to_output).mean())}, to_output
 
 
-def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray, *, seed: int | None = None,
-                       source: str = "", max_batch: int = 32, n_examples: int = 4,
+def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray, sizes: np.ndarray, *,
+                       seed: int | None = None, source: str = "", max_batch: int = 32, n_examples: int = 4,
                        surface: np.ndarray | None = None) -> SyntheticResult:
-    """CD, CD(D,G), CD(G,D) (x1e4) and Fidelity (x1e3) of every baseline, averaged over the pairs; with
-    `surface` (a second sample of each true surface), also the metric floor `SyntheticResult.floor`."""
+    """CD, CD(D,G), CD(G,D) (x1e4) and Fidelity (x1e3) of every method, averaged over the pairs; `sizes`
+    (S, 3): each pair's box (length, width, height), given to the network and the box priors. With `surface`
+    (a second sample of each true surface), also the metric floor `SyntheticResult.floor`."""
     t0 = time.perf_counter()
     partial = np.asarray(partial, np.float32)
     complete = np.asarray(complete, np.float32)
-    generated, completion = network_outputs(model, partial, max_batch=max_batch)
-    outputs = {"input": partial, "mirror": mirror_symmetry(partial), "generation": generated, "ggd": completion}
+    sizes = np.asarray(sizes, np.float64).reshape(-1, 3)
+    generated, completion = network_outputs(model, partial, sizes, max_batch=max_batch)
+    n_out = model.config.num_output
+    outputs = {"input": partial, "mirror": mirror_symmetry(partial), "box_fill": box_fill(sizes, n_out),
+               "template": template_points(sizes, n_out),
+               "mirror_template": np.stack([thinned_union([m, t], n_out) for m, t in
+                                            zip(mirror_symmetry(partial), template_points(sizes, n_out))])
+               if len(partial) else np.zeros((0, n_out, 3), np.float32),
+               "generation": generated, "ggd": completion}
     result: dict[str, dict[str, float]] = {}
     observed = observed_mask(complete, partial)
     observed_fraction = float("nan")
@@ -138,14 +182,14 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
                            observed_fraction, floor)
 
 
-def control_point_ablation(checkpoints: Sequence[str | Path], partial: np.ndarray, complete: np.ndarray, *,
-                           max_batch: int = 32) -> list[AblationRow]:
+def control_point_ablation(checkpoints: Sequence[str | Path], partial: np.ndarray, complete: np.ndarray,
+                           sizes: np.ndarray, *, max_batch: int = 32) -> list[AblationRow]:
     """CD(D,G) and CD(G,D) (x1e4) of the GGD-Net completion of each checkpoint (e.g. N_c = 128, 256, 512),
     and the CD of its generation-only branch."""
     rows = []
     for path in checkpoints:
         model = load_model(path)
-        generated, completion = network_outputs(model, partial, max_batch=max_batch)
+        generated, completion = network_outputs(model, partial, sizes, max_batch=max_batch)
         ggd = _chamfer_row(completion, np.asarray(complete, np.float32))[0]
         gen = _chamfer_row(generated, np.asarray(complete, np.float32))[0]
         rows.append(AblationRow(str(path), model.config.num_control, ggd["cd_dg"], ggd["cd_gd"], gen["cd"]))

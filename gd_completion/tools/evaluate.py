@@ -12,12 +12,14 @@ from gd_completion.errors import EvaluationError
 # torch, the model and the evaluation modules are imported in run_evaluation: `--help` stays light.
 
 DEFAULT_PANDASET = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "pandaset-002"
+DEFAULT_MESHES = DEFAULT_PANDASET.parent / "vehicle-meshes"
 
 
 def run_evaluation(args: argparse.Namespace) -> int:
     """Run the parts selected by `args`, print the tables and write report.md and PNGs to args.output."""
     import torch
 
+    from gd_completion.evaluation.box_noise import BoxNoise
     from gd_completion.evaluation.pandaset_eval import evaluate_pandaset
     from gd_completion.evaluation.report import (
         ablation_section,
@@ -27,7 +29,13 @@ def run_evaluation(args: argparse.Namespace) -> int:
         write_renders,
         write_report,
     )
-    from gd_completion.evaluation.synthetic import EVAL_SEED, control_point_ablation, evaluate_synthetic, load_heldout
+    from gd_completion.evaluation.synthetic import (
+        EVAL_SEED,
+        control_point_ablation,
+        evaluate_synthetic,
+        load_heldout,
+        load_heldout_meshes,
+    )
     from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, read_checkpoint_metadata
 
     start = time.perf_counter()
@@ -54,23 +62,38 @@ def run_evaluation(args: argparse.Namespace) -> int:
     if args.synthetic_samples > 0:
         t0 = time.perf_counter()
         try:
-            heldout = load_heldout(args.synthetic_samples, seed=synthetic_seed,
-                                   mesh_dir=args.heldout_meshes, path=args.synthetic_data)
+            heldout = load_heldout(args.synthetic_samples, seed=synthetic_seed, path=args.synthetic_data)
             partial, complete = heldout.partial, heldout.complete
         except EvaluationError as error:
             emit(f"## Synthetic held-out set\n\nSkipped: {error}.")
         else:
             built = time.perf_counter() - t0
-            result = evaluate_synthetic(model, partial, complete, seed=synthetic_seed, source=heldout.source,
-                                        max_batch=args.max_batch, surface=heldout.surface)
+            result = evaluate_synthetic(model, partial, complete, heldout.sizes, seed=synthetic_seed,
+                                        source=heldout.source, max_batch=args.max_batch, surface=heldout.surface)
             emit(synthetic_section(result))
             write_renders(out, "synthetic_vehicles.png", result.examples)
             if args.ablation_checkpoints:
                 emit(ablation_section(control_point_ablation(args.ablation_checkpoints, partial, complete,
-                                                             max_batch=args.max_batch), len(partial)))
+                                                             heldout.sizes, max_batch=args.max_batch), len(partial)))
             timings.append(f"synthetic: data {built:.1f} s, evaluation {time.perf_counter() - t0 - built:.1f} s")
     elif args.ablation_checkpoints:
         emit("## Control-point ablation\n\nSkipped: it needs the synthetic set (--synthetic-samples > 0).")
+
+    if args.heldout_mesh_samples > 0 and args.synthetic_samples > 0:
+        t0 = time.perf_counter()
+        title = "Held-out meshes (synthetic scans of meshes never trained on)"
+        try:
+            meshes = load_heldout_meshes(args.heldout_mesh_samples, args.heldout_meshes or DEFAULT_MESHES,
+                                         seed=synthetic_seed)
+        except EvaluationError as error:
+            emit(f"## {title}\n\nSkipped: {error}.")
+        else:
+            built = time.perf_counter() - t0
+            result = evaluate_synthetic(model, meshes.partial, meshes.complete, meshes.sizes, seed=synthetic_seed,
+                                        source=meshes.source, max_batch=args.max_batch, surface=meshes.surface)
+            emit(synthetic_section(result, title))
+            write_renders(out, "heldout_meshes.png", result.examples)
+            timings.append(f"held-out meshes: data {built:.1f} s, evaluation {time.perf_counter() - t0 - built:.1f} s")
 
     pandaset = Path(args.pandaset) if args.pandaset else DEFAULT_PANDASET
     if args.no_pandaset:
@@ -81,9 +104,12 @@ def run_evaluation(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         result = evaluate_pandaset(model, pandaset, preprocessing=preprocessing,
                                    max_frames_per_vehicle=args.max_frames_per_vehicle or None,
-                                   max_vehicles=args.max_vehicles, max_batch=args.max_batch)
+                                   max_vehicles=args.max_vehicles, max_batch=args.max_batch,
+                                   sensors=tuple(args.sensors), random_points=args.random_reference_points,
+                                   noise=None if args.no_box_noise else BoxNoise(seed=args.box_noise_seed))
         emit(pandaset_section(result, num_control=model.config.num_control, num_input=model.config.num_input))
         write_renders(out, "pandaset_vehicles.png", result.examples)
+        write_renders(out, "pandaset_worst.png", result.worst)
         steps = ", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items())
         timings.append(f"pandaset: {time.perf_counter() - t0:.1f} s ({steps})")
         if args.no_fusion:
@@ -120,15 +146,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--synthetic-seed", type=int, default=None,
                         help="seed of the held-out set (default: evaluation.synthetic.EVAL_SEED, reserved for "
                         "evaluation: never train or validate on it)")
-    parser.add_argument("--heldout-meshes", default=None, help="folder of meshes never used in training")
+    parser.add_argument("--heldout-meshes", default=None,
+                        help=f"mesh folder holding synth.meshio.HELDOUT_MESHES, never trained on (default "
+                        f"{DEFAULT_MESHES}; skipped if absent)")
+    parser.add_argument("--heldout-mesh-samples", type=int, default=128,
+                        help="synthetic pairs made from the held-out meshes (default 128; 0 skips them, as does "
+                        "--synthetic-samples 0)")
     parser.add_argument("--synthetic-data", default=None, help="prebuilt held-out set (synth load_dataset)")
     parser.add_argument("--ablation-checkpoints", nargs="+", default=None, metavar="PT",
                         help="checkpoints of the control-point ablation (e.g. N_c = 128, 256, 512)")
     parser.add_argument("--pandaset", default=None,
                         help=f"PandaSet sequence folder (default {DEFAULT_PANDASET}; skipped if absent)")
     parser.add_argument("--no-pandaset", action="store_true", help="skip the PandaSet part")
-    parser.add_argument("--max-frames-per-vehicle", type=int, default=10,
-                        help="evenly spaced input frames per vehicle (default 10; 0 = all)")
+    parser.add_argument("--max-frames-per-vehicle", type=int, default=0,
+                        help="evenly spaced observations (frame, sensor) per vehicle (default 0 = all)")
+    parser.add_argument("--sensors", type=int, nargs="+", default=[0, 1], choices=[0, 1],
+                        help="PandaSet sensors (0 Pandar64, 1 PandarGT; default both)")
+    parser.add_argument("--random-reference-points", type=int, default=20_000,
+                        help="points of the random PandaSet reference (default 20000)")
+    parser.add_argument("--no-box-noise", action="store_true", help="skip the PandaSet box-noise run")
+    parser.add_argument("--box-noise-seed", type=int, default=2024, help="seed of the box noise (default 2024)")
     parser.add_argument("--max-vehicles", type=int, default=None, help="first N stationary vehicles only")
     parser.add_argument("--no-fusion", action="store_true", help="skip the PandaSet track-fusion part")
     parser.add_argument("--fusion-max-frames", type=int, default=20,
