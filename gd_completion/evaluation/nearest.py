@@ -31,11 +31,9 @@ def _grid_nearest(query: np.ndarray, target: np.ndarray, out: np.ndarray) -> Non
     scale = np.empty(3, np.float64)
     for a in range(3):
         scale[a] = dims[a] / max(hi[a] - lo[a], 1e-12) if dims[a] > 1 else 0.0
-    # the cells' real widths (dims may be capped): the smallest bounds the ring distance from below
-    width = h
+    width = np.empty(3, np.float64)  # the cells' real widths (dims may be capped)
     for a in range(3):
-        if dims[a] > 1:
-            width = min(width, (hi[a] - lo[a]) / dims[a])
+        width[a] = (hi[a] - lo[a]) / dims[a] if dims[a] > 1 else np.inf
     cell = np.empty(n, np.int64)
     for j in range(n):
         c = 0
@@ -81,8 +79,15 @@ def _grid_nearest(query: np.ndarray, target: np.ndarray, out: np.ndarray) -> Non
                             if d < best:
                                 best = d
                         z += 1
-            bound = ring * width
-            if best <= bound * bound:
+            # every unscanned target point lies beyond a face of the scanned cube of cells: the nearest
+            # such face (sides with no cells left excluded) bounds its distance from below
+            bound = np.inf
+            for a in range(3):
+                if c0[a] - ring > 0:
+                    bound = min(bound, query[i, a] - (lo[a] + (c0[a] - ring) * width[a]))
+                if c0[a] + ring < dims[a] - 1:
+                    bound = min(bound, lo[a] + (c0[a] + ring + 1) * width[a] - query[i, a])
+            if bound == np.inf or (bound > 0 and best <= bound * bound):
                 break
         out[i] = best
 
