@@ -18,7 +18,7 @@ from gd_completion.synth.meshio import (
     mesh_folder_digest,
     sample_surface,
 )
-from gd_completion.synth.vehicles import KIND_SIZE_RANGES, VEHICLE_KINDS, generate_vehicle, vehicle_label
+from gd_completion.synth.vehicles import BASE_KINDS, KIND_SIZE_RANGES, generate_vehicle, vehicle_label
 
 # --- helpers --------------------------------------------------------------------------------------------
 
@@ -84,7 +84,7 @@ def sorted_rows(a: np.ndarray) -> np.ndarray:
 # --- vehicles --------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("kind", VEHICLE_KINDS)
+@pytest.mark.parametrize("kind", BASE_KINDS)  # the composite kinds: test_synth_v2
 def test_vehicle_sizes_in_range_and_centred(kind):
     for seed in range(4):
         mesh = generate_vehicle(np.random.default_rng(seed), kind)

@@ -10,8 +10,15 @@ import pytest
 from gd_completion.geometry import Box3D, denormalize, normalize
 from gd_completion.synth.beams import PATTERN_NAMES, BeamPattern
 from gd_completion.synth.dataset import V1_SAMPLING, V2_SAMPLING, SampleOptions, build_dataset, make_sample, sample_rng
-from gd_completion.synth.meshio import HELDOUT_MESHES
-from gd_completion.synth.vehicles import BASE_KINDS, KIND_SIZE_RANGES, generate_vehicle, size_range
+from gd_completion.synth.meshio import HELDOUT_MESHES, sample_surface
+from gd_completion.synth.vehicles import (
+    BASE_KINDS,
+    KIND_SIZE_RANGES,
+    VEHICLE_KINDS,
+    generate_vehicle,
+    size_range,
+    vehicle_label,
+)
 
 
 def digest(*arrays: np.ndarray) -> str:
@@ -48,7 +55,7 @@ def test_options_round_trip_and_validation():
         d = json.loads(json.dumps(opts.to_dict()))
         assert SampleOptions.from_dict(d) == opts
     assert V1_SAMPLING.kinds == BASE_KINDS and V1_SAMPLING.box_noise_prob == 0
-    assert V2_SAMPLING.box_noise_prob > 0.5 and set(BASE_KINDS) <= set(V2_SAMPLING.kinds)
+    assert V2_SAMPLING.box_noise_prob > 0.5 and set(BASE_KINDS) < set(V2_SAMPLING.kinds)
     with pytest.raises(ValueError, match="kinds"):
         SampleOptions(kinds=("tank",))
     with pytest.raises(ValueError, match="beam pattern"):
@@ -154,3 +161,54 @@ def test_hdl32e_pattern():
     assert p.n_beams == 32 and e.max() == pytest.approx(10.67) and e.min() == pytest.approx(-30.67)
     np.testing.assert_allclose(-np.diff(e), 1.333, atol=0.01)
     assert p.horizontal_resolution_deg == 0.16
+
+
+COMPOSITES = ("construction", "semi_trailer", "pickup_load", "trailer")
+
+
+@pytest.mark.parametrize("kind", COMPOSITES)
+@pytest.mark.parametrize("spread", [0.0, 0.15])
+def test_composite_kinds_centred_in_range_and_closed(kind, spread):
+    assert kind in VEHICLE_KINDS
+    for seed in range(8):
+        mesh = generate_vehicle(np.random.default_rng(seed), kind, size_spread=spread)
+        lo, hi = mesh.bounds
+        np.testing.assert_allclose((lo + hi) / 2, 0.0, atol=1e-9)
+        r = size_range(kind, spread)
+        assert np.all(mesh.extent >= r[:, 0] - 1e-6) and np.all(mesh.extent <= r[:, 1] + 1e-6), (seed, mesh.extent)
+        assert np.isfinite(mesh.vertices).all() and len(mesh.faces) >= 60
+        assert mesh.faces.min() >= 0 and mesh.faces.max() < len(mesh.vertices)
+        # built of closed parts: every edge is shared by exactly two faces
+        e = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        _, counts = np.unique(e, axis=0, return_counts=True)
+        assert np.all(counts % 2 == 0)
+    expected = {"construction": "truck", "semi_trailer": "truck", "pickup_load": "car", "trailer": "truck"}
+    assert vehicle_label(kind) == expected[kind]
+
+
+def test_construction_vehicle_is_low_and_heavy():
+    """Most of its surface lies in the lower 65 % of the box, with a cab reaching the top at one end."""
+    rng = np.random.default_rng(5)
+    for seed in range(12):
+        mesh = generate_vehicle(np.random.default_rng(seed), "construction")
+        p = sample_surface(mesh, 4000, rng)
+        z = (p[:, 2] - mesh.bounds[0, 2]) / mesh.extent[2]
+        x = (p[:, 0] - mesh.bounds[0, 0]) / mesh.extent[0]
+        assert (z < 0.65).mean() > 0.6, seed
+        low = z < 0.5
+        assert np.ptp(x[low]) > 0.8  # the low chassis / tracks / tool span most of the length
+        top = z > 0.9
+        assert top.any() and np.ptp(x[top]) < 0.6  # the cab (and maybe an arm), not a full-length roof
+
+
+def test_pickup_load_carries_a_load_in_the_bed():
+    rng = np.random.default_rng(1)
+    higher = 0
+    for seed in range(12):
+        mesh = generate_vehicle(np.random.default_rng(seed), "pickup_load")
+        p = sample_surface(mesh, 6000, rng)
+        u = (p - mesh.bounds[0]) / mesh.extent
+        bed = u[:, 0] < 0.38  # the bed: rear 40 % of the length
+        assert (u[bed, 2] > 0.62).sum() > 30, seed  # something stands above the bed's sides
+        higher += bool((u[bed, 2] > 0.97).any())  # the load is the highest part
+    assert 1 <= higher <= 11

@@ -13,7 +13,8 @@ __all__ = [
 
 #: The kinds of generator version 1 (drawn by `synth.dataset` and the demo drive unless told otherwise).
 BASE_KINDS = ("sedan", "hatchback", "suv", "pickup", "van", "box_truck", "bus")
-VEHICLE_KINDS = BASE_KINDS
+#: Every procedural kind: BASE_KINDS and the composite kinds built from boxes, wheels and lofted bodies.
+VEHICLE_KINDS = BASE_KINDS + ("construction", "semi_trailer", "pickup_load", "trailer")
 #: Default of `generate_vehicle`'s `size_spread` in wide presets: every size range widened by 15 % each way.
 WIDE_SIZE_SPREAD = 0.15
 
@@ -26,10 +27,15 @@ KIND_SIZE_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float], tupl
     "van": ((4.8, 6.0), (1.9, 2.1), (1.9, 2.6)),
     "box_truck": ((6.0, 9.0), (2.3, 2.5), (2.8, 3.5)),
     "bus": ((10.0, 12.5), (2.45, 2.55), (2.9, 3.3)),
+    "construction": ((5.0, 9.0), (2.3, 2.8), (2.8, 3.6)),
+    "semi_trailer": ((12.0, 17.0), (2.45, 2.6), (3.0, 4.1)),
+    "pickup_load": ((5.2, 5.9), (1.85, 2.05), (1.75, 2.9)),
+    "trailer": ((3.0, 8.0), (1.8, 2.55), (0.9, 3.2)),
 }
 
 _LABELS = {"sedan": "car", "hatchback": "car", "suv": "car", "pickup": "car", "van": "van",
-           "box_truck": "truck", "bus": "truck"}
+           "box_truck": "truck", "bus": "truck", "construction": "truck", "semi_trailer": "truck", "pickup_load": "car",
+           "trailer": "truck"}
 
 # Side profile per kind: top outline as (fraction of length from the rear, fraction of height),
 # body bottom (fraction of height), wheel radius (fraction of height), axle positions (fraction of length),
@@ -159,6 +165,8 @@ def generate_vehicle(rng: np.random.Generator, kind: str | None = None, *, size_
     """
     if kind is None:
         kind = VEHICLE_KINDS[int(rng.integers(len(VEHICLE_KINDS)))]
+    if kind in _COMPOSITES:
+        return _COMPOSITES[kind](rng, size_range(kind, size_spread))
     if kind not in _PROFILES:
         raise ValueError(f"unknown vehicle kind {kind!r}; expected one of {VEHICLE_KINDS}")
     prof = _PROFILES[kind]
@@ -219,3 +227,206 @@ def perturb_mesh(mesh: Mesh, rng: np.random.Generator, *, scale: tuple[float, fl
     """Random anisotropic scale (per axis in `scale`) and mild deformation; result centred on its bbox."""
     m = _deform(mesh, rng, deform)
     return fit_to_size(m, mesh.extent * rng.uniform(scale[0], scale[1], 3))
+
+
+# --- composite kinds: boxes, wheels and beams, built standing on z = 0 with x forward, then fitted to size ----
+
+
+def _beam(p0: np.ndarray | tuple, p1: np.ndarray | tuple, width: float, thickness: float) -> Mesh:
+    """Box of `width` (y) and `thickness` from `p0` to `p1` (points (x, y, z), same y): a sloped arm or strut."""
+    p0, p1 = np.asarray(p0, dtype=np.float64), np.asarray(p1, dtype=np.float64)
+    d = p1 - p0
+    length = float(np.hypot(d[0], d[2]))
+    m = box_mesh((max(length, 1e-3), width, thickness))
+    a = np.arctan2(d[2], d[0])
+    c, s = np.cos(a), np.sin(a)
+    v = m.vertices @ np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]]).T + (p0 + p1) / 2
+    return Mesh(v, m.faces)
+
+
+def _block(x0: float, x1: float, y0: float, y1: float, z0: float, z1: float) -> Mesh:
+    """Axis-aligned box between the given bounds."""
+    return box_mesh((x1 - x0, y1 - y0, z1 - z0), ((x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2))
+
+
+def _axle(x: float, radius: float, track: float, tyre: float) -> list[Mesh]:
+    """A pair of wheels at `x` whose outer faces are `track` apart."""
+    wy = track / 2 - tyre / 2
+    return [_wheel(np.array([x, side * wy, radius]), radius, tyre) for side in (-1.0, 1.0)]
+
+
+def _draw_size(rng: np.random.Generator, ranges: np.ndarray) -> np.ndarray:
+    return rng.uniform(ranges[:, 0], ranges[:, 1])
+
+
+def _construction(rng: np.random.Generator, ranges: np.ndarray) -> Mesh:
+    """Wheel loader, excavator or roller: a heavy low chassis over most of the length (top at 50-65 % of the
+    height), a cab block at one end reaching the top and a bucket, boom or drum reaching the other end."""
+    length, width, height = _draw_size(rng, ranges)
+    sub = int(rng.integers(3))
+    deck = height * rng.uniform(0.5, 0.65)  # top of the heavy lower part
+    hw = width / 2
+    parts: list[Mesh] = []
+    if sub == 0:  # wheel loader: big wheels, bucket on lift arms at the front, cab over the rear axle
+        r = min(deck * rng.uniform(0.42, 0.5), 0.8)
+        tyre = width * rng.uniform(0.2, 0.25)
+        x_rear, x_front = -length * rng.uniform(0.22, 0.3), length * rng.uniform(0.08, 0.15)
+        parts += _axle(x_rear, r, width * 0.96, tyre) + _axle(x_front, r, width * 0.96, tyre)
+        body_w = width * 0.96 - 2 * tyre - 0.05
+        parts.append(_block(-length / 2, x_front + r * 0.6, -body_w / 2, body_w / 2, r * 0.5, deck))
+        parts.append(_block(-length / 2, x_rear + r * 1.2, -hw * 0.9, hw * 0.9, deck * 0.7, deck))  # engine hood
+        cx = x_rear + rng.uniform(0.6, 1.0) * r
+        parts.append(_block(cx - 0.8, cx + 0.8, -hw * 0.55, hw * 0.55, deck, height))  # cab
+        bx = length / 2
+        b_len, b_h = rng.uniform(0.9, 1.3), rng.uniform(0.9, 1.3)
+        b_z = rng.uniform(0.0, 0.5) * deck  # bucket lowered or carried
+        parts.append(_block(bx - b_len, bx, -hw, hw, b_z, b_z + b_h))  # bucket
+        for side in (-1.0, 1.0):
+            parts.append(_beam((x_front, side * hw * 0.45, deck * 0.95), (bx - b_len * 0.7, side * hw * 0.45,
+                                                                           b_z + b_h * 0.6), 0.25, 0.3))
+    elif sub == 1:  # excavator: tracks, upper house, cab at the front left, boom and stick to a bucket
+        track_h = deck * rng.uniform(0.35, 0.45)
+        t_len = length * rng.uniform(0.5, 0.6)
+        t0 = -length / 2 + length * rng.uniform(0.0, 0.08)
+        tw = width * 0.22
+        for side in (-1.0, 1.0):
+            parts.append(_block(t0, t0 + t_len, side * hw - (tw if side > 0 else 0),
+                                side * hw + (0 if side > 0 else tw), 0.0, track_h))
+        parts.append(_block(t0 + 0.3, t0 + t_len - 0.3, -hw + tw, hw - tw, track_h * 0.5, track_h))
+        h0 = t0 - rng.uniform(0.0, 0.3)
+        h1 = t0 + t_len * rng.uniform(0.85, 1.0)
+        parts.append(_block(h0, h1, -hw * 0.95, hw * 0.95, track_h + 0.1, deck))  # house with counterweight
+        parts.append(_block(h1 - 1.6, h1, 0.1 * hw, hw * 0.95, deck, height))  # cab
+        pivot = np.array([h1 - 0.3, -0.2 * hw, deck * 0.9])
+        elbow = np.array([h1 + (length / 2 - h1) * rng.uniform(0.45, 0.7), -0.2 * hw, height * rng.uniform(0.8, 0.98)])
+        tip = np.array([length / 2 - 0.5, -0.2 * hw, rng.uniform(0.1, 0.6) * deck])
+        parts += [_beam(pivot, elbow, 0.5, 0.55), _beam(elbow, tip, 0.4, 0.4)]
+        parts.append(_block(length / 2 - 1.0, length / 2, -0.2 * hw - 0.55, -0.2 * hw + 0.55, tip[2] - 0.5,
+                            tip[2] + 0.4))  # bucket
+    else:  # roller: front drum, rear wheels, ROPS cab at the rear
+        r = deck * rng.uniform(0.5, 0.6) * 0.9
+        drum_x = length / 2 - r
+        parts.append(_wheel(np.array([drum_x, 0.0, r]), r, width, n_seg=20))
+        parts.append(_block(drum_x - r * 0.3, drum_x + r * 1.0, -hw, hw, r * 1.2, r * 1.6))  # drum frame
+        rr = r * rng.uniform(0.7, 0.9)
+        x_rear = -length / 2 + rr * 1.3
+        parts += _axle(x_rear, rr, width * 0.95, width * 0.25)
+        parts.append(_block(-length / 2, drum_x - r * 1.05, -hw * 0.7, hw * 0.7, rr * 0.5, deck))  # chassis
+        cx0, cx1 = -length / 2 + 0.2, -length / 2 + 0.2 + rng.uniform(1.5, 2.0)
+        parts.append(_block(cx0, cx1, -hw * 0.75, hw * 0.75, height - 0.12, height))  # roof
+        for x in (cx0 + 0.05, cx1 - 0.05):
+            for side in (-1.0, 1.0):
+                parts.append(_block(x - 0.05, x + 0.05, side * hw * 0.7 - 0.05, side * hw * 0.7 + 0.05, deck,
+                                    height))  # roll-over posts
+        parts.append(_block(cx0 + 0.3, cx1 - 0.3, -0.3, 0.3, deck, deck + 0.6))  # seat and controls
+    if rng.random() < 0.5:  # mirror image: cab and tool at the other end
+        parts = [Mesh(m.vertices * np.array([-1.0, 1.0, 1.0]), m.faces[:, ::-1]) for m in parts]
+    return fit_to_size(_deform(merge_meshes(parts), rng, 0.01), np.array([length, width, height]))
+
+
+def _tractor(rng: np.random.Generator, x_front: float, width: float, height: float) -> tuple[list[Mesh], float]:
+    """Truck tractor whose front is at `x_front`: cab (cab-over or with a bonnet), chassis, two or three axles.
+    Returns the parts and the x of the fifth wheel."""
+    cab_len = rng.uniform(1.9, 2.4)
+    bonnet = rng.uniform(1.2, 1.9) if rng.random() < 0.35 else 0.0
+    r = rng.uniform(0.48, 0.55)
+    cab_h = height * rng.uniform(0.85, 1.0)
+    x_cab1 = x_front - bonnet
+    parts = [_block(x_cab1 - cab_len, x_cab1, -width / 2, width / 2, 2 * r * 0.9, cab_h)]
+    if bonnet:
+        parts.append(_block(x_cab1, x_front, -width * 0.42, width * 0.42, 2 * r * 0.8, 2 * r + 0.9))
+    wheelbase = rng.uniform(3.3, 4.2)
+    x_fa = x_front - bonnet * 0.6 - 1.2
+    x_ra = x_fa - wheelbase
+    frame_end = x_ra - rng.uniform(0.6, 1.0)
+    parts.append(_block(frame_end, x_front - 0.1, -0.5, 0.5, r * 0.8, r * 2.1))
+    parts += _axle(x_fa, r, width * 0.98, 0.32)
+    for k in range(int(rng.integers(1, 3))):
+        parts += _axle(x_ra - k * 1.35, r, width * 0.98, 0.55)
+    parts.append(_block(x_cab1 - 0.1, x_cab1 + 0.05, -width / 2 - 0.02, width / 2 + 0.02, 1.5, 2.3))  # mirrors
+    return parts, x_ra - 0.3
+
+
+def _semi_trailer(rng: np.random.Generator, ranges: np.ndarray) -> Mesh:
+    """Articulated lorry: tractor and a box, curtain or flatbed semi-trailer on a tandem or tridem at the rear."""
+    length, width, height = _draw_size(rng, ranges)
+    flatbed = rng.random() < 0.35
+    parts, fifth = _tractor(rng, length / 2, width, height * (1.0 if flatbed else rng.uniform(0.82, 0.97)))
+    gap = rng.uniform(0.5, 1.2)
+    cab_back = min(float(m.vertices[:, 0].min()) for m in parts[:1])
+    t_front = cab_back - gap
+    t_rear = -length / 2
+    deck = rng.uniform(1.2, 1.45)
+    r = rng.uniform(0.45, 0.52)
+    for k in range(int(rng.integers(2, 4))):
+        parts += _axle(t_rear + 1.4 + k * 1.35, r, width * 0.98, 0.55)
+    parts.append(_block(t_rear + 0.9, fifth + 1.0, -0.45, 0.45, deck - 0.35, deck))  # trailer frame
+    if flatbed:
+        parts.append(_block(t_rear, t_front, -width / 2, width / 2, deck, deck + 0.2))
+        x = t_rear + rng.uniform(0.0, 1.0)
+        while x < t_front - 1.5:  # loads on the deck: crates, coils, machinery
+            ln = rng.uniform(1.0, 4.0)
+            x1 = min(x + ln, t_front - 0.3)
+            if rng.random() < 0.75:
+                w = width * rng.uniform(0.5, 1.0)
+                parts.append(_block(x, x1, -w / 2, w / 2, deck + 0.2, deck + 0.2 + rng.uniform(0.4, 2.4)))
+            x = x1 + rng.uniform(0.2, 1.5)
+    else:
+        parts.append(_block(t_rear, t_front, -width / 2, width / 2, deck, height))
+    mesh = merge_meshes(parts)
+    height = float(np.clip(mesh.extent[2], ranges[2, 0], ranges[2, 1]))
+    return fit_to_size(_deform(mesh, rng, 0.01), np.array([length, width, height]))
+
+
+def _pickup_load(rng: np.random.Generator, ranges: np.ndarray) -> Mesh:
+    """Pickup whose bed carries crates and boxes of random sizes, sometimes higher than the cab."""
+    spread = max(0.0, 1.0 - ranges[0, 0] / KIND_SIZE_RANGES["pickup_load"][0][0])  # the widening asked for
+    truck = generate_vehicle(rng, "pickup", size_spread=spread)
+    size = truck.extent
+    length, width, height = size
+    lo = -height / 2
+    floor = lo + 0.58 * height  # top of the bed sides in the pickup profile
+    x0, x1 = -length / 2 + 0.03 * length, -length / 2 + 0.40 * length
+    top_max = min(ranges[2, 1], height * rng.uniform(1.05, 1.55)) + lo
+    parts = [truck]
+    x = x0
+    for _ in range(int(rng.integers(1, 4))):
+        if x > x1 - 0.3:
+            break
+        ln = min(rng.uniform(0.4, 1.6), x1 - x)
+        w = width * rng.uniform(0.35, 0.85)
+        y = rng.uniform(-1, 1) * (width * 0.85 - w) / 2
+        top = rng.uniform(floor + 0.25, top_max)
+        parts.append(_block(x, x + ln, y - w / 2, y + w / 2, floor - 0.05, top))
+        x += ln + rng.uniform(0.0, 0.3)
+    return merge_meshes(parts).centered()
+
+
+def _trailer(rng: np.random.Generator, ranges: np.ndarray) -> Mesh:
+    """Car or box trailer without a cab: deck on one or two axles, low sides or a box, A-frame drawbar in front."""
+    length, width, height = _draw_size(rng, ranges)
+    r = rng.uniform(0.28, 0.4)
+    deck = r * 2 + rng.uniform(0.05, 0.2)
+    bar = rng.uniform(1.0, 1.6)
+    body0, body1 = -length / 2, length / 2 - bar
+    parts: list[Mesh] = [_block(body0, body1, -width / 2, width / 2, deck - 0.15, deck)]
+    xa = body0 + (body1 - body0) * rng.uniform(0.4, 0.55)
+    for k in range(1 + int(rng.random() < 0.5)):
+        parts += _axle(xa - k * 0.9, r, width, 0.2)
+    if height > deck + 1.0 and rng.random() < 0.6:  # box trailer
+        parts.append(_block(body0, body1, -width / 2, width / 2, deck, height))
+    else:  # open trailer: side boards and sometimes a load
+        wall = rng.uniform(0.1, 0.45)
+        for side in (-1.0, 1.0):
+            parts.append(_block(body0, body1, side * width / 2 - 0.03, side * width / 2 + 0.03, deck, deck + wall))
+        load_top = height if height > deck + wall + 0.1 else deck + wall
+        lw = width * rng.uniform(0.6, 0.9)
+        parts.append(_block(body0 + 0.2, body1 - 0.2, -lw / 2, lw / 2, deck, load_top))
+    parts += [_beam((body1, side * width * 0.35, deck - 0.1), (length / 2, 0.0, deck - 0.15), 0.08, 0.1)
+              for side in (-1.0, 1.0)]  # A-frame
+    mesh = merge_meshes(parts)
+    return fit_to_size(mesh, np.array([length, width, np.clip(mesh.extent[2], ranges[2, 0], ranges[2, 1])]))
+
+
+_COMPOSITES = {"construction": _construction, "semi_trailer": _semi_trailer, "pickup_load": _pickup_load,
+               "trailer": _trailer}
