@@ -212,3 +212,160 @@ def test_pickup_load_carries_a_load_in_the_bed():
         assert (u[bed, 2] > 0.62).sum() > 30, seed  # something stands above the bed's sides
         higher += bool((u[bed, 2] > 0.97).any())  # the load is the highest part
     assert 1 <= higher <= 11
+
+
+# --- patterns ------------------------------------------------------------------------------------------------
+
+
+def _inside_box_scan(name: str, heading: float = 0.0):
+    from gd_completion.synth.lidar import scan_meshes
+    from gd_completion.synth.meshio import box_mesh
+
+    room = box_mesh((80.0, 80.0, 60.0), (0.0, 0.0, 10.0))  # the sensor inside: every ray hits a wall
+    scan = scan_meshes([room], (0.0, 0.0, 1.8), BeamPattern.named(name), np.random.default_rng(0), dropout=0.0,
+                       range_noise_std=0.0, sensor_heading_deg=heading)
+    d = scan.points - np.array([0.0, 0.0, 1.8], np.float32)
+    el = np.degrees(np.arcsin(d[:, 2] / np.linalg.norm(d, axis=1)))
+    az = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
+    return scan, el, az
+
+
+@pytest.mark.parametrize("name,lo,hi,n", [("hdl32e", -30.67, 10.67, 32), ("vlp32c", -25.0, 15.0, 32),
+                                          ("pandargt", -10.4, 9.6, 167)])
+def test_new_patterns_elevations(name, lo, hi, n):
+    assert name in PATTERN_NAMES
+    p = BeamPattern.named(name)
+    assert p.n_beams == n and min(p.elevations_deg) == pytest.approx(lo) and max(p.elevations_deg) == pytest.approx(hi)
+    scan, el, _ = _inside_box_scan(name, heading=25.0)
+    assert el.min() >= lo - 0.05 and el.max() <= hi + 0.05
+    assert el.min() < lo + 0.2 and el.max() > hi - 0.2
+    assert len(np.unique(scan.ring)) == n
+
+
+def test_pandargt_fires_only_inside_its_field_of_view():
+    p = BeamPattern.named("pandargt")
+    assert p.fov_deg == 60.0 and p.horizontal_resolution_deg == 0.1
+    np.testing.assert_allclose(-np.diff(p.elevations_deg), 0.12, atol=0.002)
+    for heading in (25.0, 170.0, -100.0):
+        scan, _, az = _inside_box_scan("pandargt", heading)
+        rel = (az - heading + 180.0) % 360.0 - 180.0
+        assert np.abs(rel).max() <= 30.0 + 0.1 and np.abs(rel).max() > 29.5
+        assert len(scan.points) == pytest.approx(167 * 600, rel=0.01)
+    from gd_completion.synth.lidar import intersect_arcs
+
+    assert intersect_arcs((-10.0, 10.0), (0.0, 60.0)) == (0.0, 10.0)
+    assert intersect_arcs((170.0, 190.0), (-185.0, -125.0)) == (175.0, 190.0)
+    assert intersect_arcs((0.0, 10.0), (20.0, 80.0)) is None
+    assert intersect_arcs((-180.0, 180.0), (20.0, 80.0)) == (20.0, 80.0)
+
+
+def test_pandargt_sample_is_cut_by_its_field_of_view():
+    opts = SampleOptions(patterns=("pandargt",))
+    cut = 0
+    for i in range(12):
+        partial, complete, meta = make_sample(sample_rng(9, i), "sedan", n_input=256, n_gt=256, options=opts)
+        assert meta["pattern"] == "pandargt"
+        true_box, _ = _boxes(meta)
+        world = denormalize(partial, true_box)
+        rel = (np.degrees(np.arctan2(world[:, 1], world[:, 0])) - meta["sensor_heading"] + 180) % 360 - 180
+        assert np.abs(rel).max() <= 30.1
+        cut += np.abs(rel).max() > 29.0
+    assert cut >= 1  # some vehicles stand at the edge of the field of view
+
+
+# --- sensor effects ------------------------------------------------------------------------------------------
+
+
+def test_mixed_pixels_fall_between_foreground_and_background():
+    from gd_completion.synth.lidar import scan_meshes
+    from gd_completion.synth.meshio import box_mesh
+
+    front = box_mesh((1.0, 2.0, 4.0), (10.0, 0.0, 1.0))  # faces the sensor at 9.5 m
+    wall = box_mesh((1.0, 30.0, 10.0), (20.5, 0.0, 2.0))  # at 20 m
+    pattern = BeamPattern.named("hdl64e")
+
+    def ranges(prob: float) -> np.ndarray:
+        scan = scan_meshes([front, wall], (0.0, 0.0, 1.8), pattern, np.random.default_rng(1), dropout=0.0,
+                           range_noise_std=0.0, azimuth_range=(-30.0, 30.0), mixed_pixel_prob=prob)
+        return scan.points[:, 0]  # x: depth along the view
+
+    clean, mixed = ranges(0.0), ranges(1.0)
+    between = (mixed > 10.0) & (mixed < 19.5)
+    assert not ((clean > 10.0) & (clean < 19.5)).any()
+    assert between.sum() >= 20 and len(mixed) == len(clean)
+    # only at the silhouette: the mixed points lie near the front box's side edges (y = +-1) or its top
+    scan = scan_meshes([front, wall], (0.0, 0.0, 1.8), pattern, np.random.default_rng(1), dropout=0.0,
+                       range_noise_std=0.0, azimuth_range=(-30.0, 30.0), mixed_pixel_prob=1.0)
+    p = scan.points[between]
+    ang = np.degrees(np.arctan2(np.abs(p[:, 1]), p[:, 0]))
+    edge_ang = np.degrees(np.arctan2(1.0, 9.5))
+    el = np.degrees(np.arctan2(p[:, 2] - 1.8, np.hypot(p[:, 0], p[:, 1])))
+    top_el = np.degrees(np.arctan2(3.0 - 1.8, 9.5))
+    near_edge = (np.abs(ang - edge_ang) < 0.6) | (np.abs(el - top_el) < 0.8)
+    assert near_edge.all()
+
+
+def test_tilted_ground_plane():
+    from gd_completion.synth.lidar import scan_meshes
+
+    n = np.array([0.03, -0.02, 1.0])
+    n /= np.linalg.norm(n)
+    sensor = np.array([0.0, 0.0, 1.8])
+    scan = scan_meshes([], sensor, BeamPattern.named("pandar64"), np.random.default_rng(0), range_noise_std=0.0,
+                       ground_plane=(n, float(n @ sensor) - 1.8), azimuth_range=(-20.0, 20.0))
+    assert len(scan.points) > 1000 and np.all(scan.object_index == -1)
+    np.testing.assert_allclose(scan.points @ n, float(n @ sensor) - 1.8, atol=1e-3)
+    flat = scan_meshes([], sensor, BeamPattern.named("pandar64"), np.random.default_rng(0), range_noise_std=0.0,
+                       ground_plane=((0.0, 0.0, 1.0), 0.0), azimuth_range=(-20.0, 20.0))
+    old = scan_meshes([], sensor, BeamPattern.named("pandar64"), np.random.default_rng(0), range_noise_std=0.0,
+                      ground_z=0.0, azimuth_range=(-20.0, 20.0))
+    np.testing.assert_allclose(flat.points, old.points, atol=1e-4)
+
+
+def test_sensor_effects():
+    from gd_completion.synth.dataset import _sensor_effects
+
+    rng = np.random.default_rng(0)
+    sensor = np.array([0.0, 0.0, 1.8])
+    # a 4 x 1.5 m car side at 10 m: points on x = 10, z in [0, 1.5]; ground points at z = 0
+    car = np.stack([np.full(4000, 10.0), rng.uniform(-2, 2, 4000), rng.uniform(0, 1.5, 4000)], 1)
+    ground = np.stack([rng.uniform(5, 60, 4000), rng.uniform(-5, 5, 4000), np.zeros(4000)], 1)
+    pts = np.concatenate([car, ground]).astype(np.float32)
+    obj = np.concatenate([np.zeros(4000, np.int32), -np.ones(4000, np.int32)])
+    centre = np.array([10.0, 0.0, 0.75])
+
+    def run(**kw):
+        return _sensor_effects(pts, obj, sensor, centre, 1.5, True, np.random.default_rng(3), SampleOptions(**kw))
+
+    np.testing.assert_array_equal(run(), pts)
+    rough = run(ground_roughness=0.05)
+    assert 0.04 < rough[4000:, 2].std() < 0.06 and np.array_equal(rough[:4000], pts[:4000])
+    glass = run(glass_dropout=1.0, glass_passthrough=1.0)  # every glass return comes from behind the glass
+    assert len(glass) == len(pts)
+    moved = np.linalg.norm(glass - pts, axis=1) > 1e-4
+    h = pts[moved, 2] / 1.5
+    assert moved.sum() > 50 and h.min() > 0.5 and h.max() < 0.93
+    extra = np.linalg.norm(glass[moved] - sensor, axis=1) - np.linalg.norm(pts[moved] - sensor, axis=1)
+    assert extra.min() >= 0.2 - 1e-3 and extra.max() <= 1.5 + 1e-3
+    lost = run(glass_dropout=1.0, glass_passthrough=0.0)
+    assert len(pts) - len(lost) > 50 and (lost[:, 2] > 1.4).sum() == (pts[:, 2] > 1.4).sum()  # roof kept
+    far = run(range_dropout=0.5)
+    kept_g = far[far[:, 2] == 0]
+    near_share = (kept_g[:, 0] < 20).sum() / (pts[4000:, 0] < 20).sum()
+    far_share = (kept_g[:, 0] > 45).sum() / (pts[4000:, 0] > 45).sum()
+    assert near_share > 0.9 and far_share < 0.8
+    patch = run(patch_dropout=3.0)
+    assert len(patch) < len(pts) and len(patch[patch[:, 2] == 0]) == 4000  # only the vehicle loses patches
+
+
+def test_v2_preset_sample_is_deterministic_and_uses_every_effect():
+    assert V2_SAMPLING.mixed_pixel_prob > 0 and V2_SAMPLING.glass_dropout > 0 and V2_SAMPLING.tilt_deg > 0
+    assert V2_SAMPLING.range_dropout > 0 and V2_SAMPLING.patch_dropout > 0 and V2_SAMPLING.ground_roughness > 0
+    assert {"pandargt", "hdl32e", "pandar64", "hdl64e"} <= set(V2_SAMPLING.patterns)
+    a = make_sample(sample_rng(1, 3), n_input=128, n_gt=128, options=V2_SAMPLING)
+    b = make_sample(sample_rng(1, 3), n_input=128, n_gt=128, options=V2_SAMPLING)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    tilted = make_sample(sample_rng(1, 3), "sedan", pattern="hdl64e", n_input=128, n_gt=512,
+                         options=SampleOptions(tilt_deg=3.0))
+    assert np.isfinite(tilted[1]).all() and tilted[2]["n_points"] >= 20

@@ -1,4 +1,4 @@
-"""Rotating-lidar beam patterns: built-in HDL-64E / Pandar40 / 40P / 64 tables and Hesai calibration CSVs."""
+"""Lidar beam patterns: built-in HDL-64E / HDL-32E / VLP-32C / Pandar40 / 40P / 64 / PandarGT tables, Hesai CSVs."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -46,19 +46,34 @@ _HDL64E_ELEV = tuple(np.round(np.concatenate([np.linspace(2.0, -8.33, 32), np.li
 # Velodyne HDL-32E (nuScenes): 32 lasers evenly from +10.67 to -30.67 deg (1.333 deg apart), 0.16 deg at 10 Hz.
 _HDL32E_ELEV = tuple(np.round(np.linspace(10.67, -30.67, 32), 4))
 
-PATTERN_NAMES = ("hdl64e", "pandar40", "pandar40p", "pandar64", "hdl32e")
+# Velodyne VLP-32C: 32 lasers from -25 to +15 deg, densest (1/3 deg) around the horizon; 0.2 deg at 10 Hz.
+_VLP32C_ELEV = (-25.0, -15.639, -11.31, -8.843, -7.254, -6.148, -5.333, -4.667, -4.0, -3.667, -3.333, -3.0, -2.667,
+                -2.333, -2.0, -1.667, -1.333, -1.0, -0.667, -0.333, 0.0, 0.333, 0.667, 1.0, 1.333, 1.667, 2.333,
+                3.333, 4.667, 7.0, 10.333, 15.0)
+# Hesai PandarGT (PandaSet's forward solid-state sensor), matched to the PandarGT points of PandaSet sequence 002
+# (frame 10, sensor 1; the sensor origin fitted so that each firing-time group is one row): 60 deg horizontal
+# field of view, rows every 0.12 deg at a fixed azimuth from -10.4 deg (lowest row measured) over the 20 deg
+# vertical field of view, 0.1 deg between the points of a row.
+_PANDARGT_ELEV = tuple(np.round(np.linspace(9.6, -10.4, 167), 4))
+
+PATTERN_NAMES = ("hdl64e", "pandar40", "pandar40p", "pandar64", "hdl32e", "vlp32c", "pandargt")
 
 
 @dataclass(frozen=True)
 class BeamPattern:
-    """Rotating lidar: per-channel elevation and azimuth offset (deg) and the horizontal step (deg)."""
+    """Lidar: per-channel elevation and azimuth offset (deg), the horizontal step (deg) and the horizontal field
+    of view (deg; under 360 for a forward-facing solid-state sensor, which fires only within it)."""
 
     name: str
     elevations_deg: tuple[float, ...]
     azimuth_offsets_deg: tuple[float, ...]
     horizontal_resolution_deg: float
+    #: Horizontal field of view (deg) centred on the sensor's heading; 360 for a rotating lidar.
+    fov_deg: float = 360.0
 
     def __post_init__(self) -> None:
+        if not 0 < self.fov_deg <= 360:
+            raise ValueError(f"beam pattern {self.name!r}: bad field of view {self.fov_deg}")
         if len(self.elevations_deg) != len(self.azimuth_offsets_deg) or not self.elevations_deg:
             raise ValueError(f"beam pattern {self.name!r}: need as many azimuth offsets as elevations (>0)")
         if not 0 < self.horizontal_resolution_deg <= 10:
@@ -76,7 +91,9 @@ class BeamPattern:
     @classmethod
     def named(cls, name: str) -> BeamPattern:
         """Built-in pattern: "hdl64e" (KITTI, 10 Hz), "pandar40", "pandar40p", "pandar64" (10 Hz, 0.2 deg),
-        "hdl32e" (Velodyne HDL-32E, 10 Hz, 0.16 deg)."""
+        "hdl32e" (Velodyne HDL-32E, 10 Hz, 0.16 deg), "vlp32c" (Velodyne VLP-32C, 10 Hz, 0.2 deg) and
+        "pandargt" (Hesai PandarGT: forward-facing solid state, 60 x 20 deg field of view, 167 rows 0.12 deg
+        apart, 0.1 deg horizontal)."""
         key = name.lower().replace("-", "").replace("_", "")
         if key == "hdl64e":
             # KITTI records at 10 Hz: ~2080 firings per turn (0.08 deg is the 5 Hz figure of the data sheet).
@@ -89,6 +106,10 @@ class BeamPattern:
             return cls("pandar64", _PANDAR64_ELEV, _PANDAR64_AZ, 0.2)
         if key == "hdl32e":
             return cls("hdl32e", _HDL32E_ELEV, (0.0,) * 32, 0.16)
+        if key == "vlp32c":
+            return cls("vlp32c", _VLP32C_ELEV, (0.0,) * 32, 0.2)
+        if key == "pandargt":
+            return cls("pandargt", _PANDARGT_ELEV, (0.0,) * len(_PANDARGT_ELEV), 0.1, fov_deg=60.0)
         raise ValueError(f"unknown beam pattern {name!r}; expected one of {PATTERN_NAMES}")
 
     @classmethod

@@ -47,6 +47,19 @@ class SampleOptions:
     centre N(0, box_center_sigma) in x and y and N(0, box_z_sigma) in z (m), each size axis times
     1 + N(0, box_size_sigma), yaw + N(0, box_yaw_sigma_deg) degrees; the complete surface is normalised by
     the same noisy box and `size` is the noisy box's size (the network completes in the frame it is given).
+
+    Sensor effects (all off by default):
+    mixed_pixel_prob: probability that a return at a depth discontinuity lands between the foreground and
+    background ranges (`lidar.scan_meshes`). glass_dropout: per sample a fraction drawn in [0, glass_dropout]
+    of the returns of the greenhouse band (a belt line drawn at 50-70 % of the height up to 93 %; cars, vans,
+    buses and mesh shapes that are not trucks) hit glass: a share glass_passthrough of them comes back from
+    0.2-1.5 m behind it (the cabin), the rest is lost. patch_dropout: mean number (Poisson) of dark or
+    specular panels per vehicle, discs of 0.3-0.8 m radius around a return whose returns are lost with a
+    probability drawn in [0.7, 1]. range_dropout: loss probability at 50 m, growing with the square of the
+    range and scaled by a per-sample darkness in [0.5, 1.5] (capped at 0.95). ground_roughness: standard
+    deviation (m) of the ground returns' heights (uneven road; with a noisy box, ground returns leak into the
+    crop above the ground cut). tilt_deg: standard deviation of the sensor's roll and pitch (the scene turns
+    about the sensor, ground plane included; the box stays yaw-only, as a detector's).
     """
 
     kinds: tuple[str, ...] = BASE_KINDS
@@ -57,6 +70,13 @@ class SampleOptions:
     box_z_sigma: float = 0.05
     box_size_sigma: float = 0.05
     box_yaw_sigma_deg: float = 4.0
+    mixed_pixel_prob: float = 0.0
+    glass_dropout: float = 0.0
+    glass_passthrough: float = 0.5
+    patch_dropout: float = 0.0
+    range_dropout: float = 0.0
+    ground_roughness: float = 0.0
+    tilt_deg: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "kinds", tuple(self.kinds))
@@ -71,6 +91,13 @@ class SampleOptions:
             raise ValueError(f"SampleOptions.box_noise_prob must be in [0, 1], got {self.box_noise_prob}")
         if not 0.0 <= self.size_spread < 1.0:
             raise ValueError(f"SampleOptions.size_spread must be in [0, 1), got {self.size_spread}")
+        for name in ("mixed_pixel_prob", "glass_dropout", "glass_passthrough", "range_dropout"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"SampleOptions.{name} must be in [0, 1], got {getattr(self, name)}")
+        for name in ("patch_dropout", "ground_roughness", "tilt_deg", "box_center_sigma", "box_z_sigma",
+                     "box_size_sigma", "box_yaw_sigma_deg"):
+            if not 0.0 <= getattr(self, name) < 100.0:
+                raise ValueError(f"SampleOptions.{name} must be non-negative, got {getattr(self, name)}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (tuples as lists); `from_dict` reads it back."""
@@ -87,9 +114,13 @@ class SampleOptions:
 
 #: Generator version 1's sampling (the defaults).
 V1_SAMPLING = SampleOptions()
-#: Training preset of model v2: every kind, wider sizes, five sensor families, detector-box noise.
-V2_SAMPLING = SampleOptions(kinds=VEHICLE_KINDS, patterns=("hdl64e", "pandar64", "pandar40p", "hdl32e"),
-                            size_spread=WIDE_SIZE_SPREAD, box_noise_prob=0.7)
+#: Training preset of model v2: every kind, wider sizes, the evaluation's sensor families (Pandar64, PandarGT,
+#: HDL-64E, 32-beam, Pandar40P), detector-box noise and every sensor effect.
+V2_SAMPLING = SampleOptions(kinds=VEHICLE_KINDS,
+                            patterns=("hdl64e", "pandar64", "pandar40p", "pandargt", "hdl32e", "vlp32c"),
+                            size_spread=WIDE_SIZE_SPREAD, box_noise_prob=0.7, mixed_pixel_prob=0.5,
+                            glass_dropout=0.6, glass_passthrough=0.5, patch_dropout=1.0, range_dropout=0.15,
+                            ground_roughness=0.03, tilt_deg=1.0)
 
 
 def sample_rng(seed: int, index: int) -> np.random.Generator:
@@ -140,6 +171,55 @@ def _box_noise(rng: np.random.Generator, opts: SampleOptions) -> np.ndarray:
         noise[3:6] = np.clip(1.0 + rng.normal(0.0, opts.box_size_sigma, 3), 0.7, 1.3)
         noise[6] = rng.normal(0.0, np.radians(opts.box_yaw_sigma_deg))
     return noise
+
+
+def _tilt(rng: np.random.Generator, opts: SampleOptions) -> np.ndarray:
+    """3x3 rotation of a sensor rolled and pitched by N(0, tilt_deg) each (identity without tilt)."""
+    roll, pitch = np.radians(rng.normal(0.0, opts.tilt_deg, 2))
+    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+    return np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]]) @ \
+        np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+
+
+def _has_glass(kind: str, label: str) -> bool:
+    return label in ("car", "van") or kind == "bus"
+
+
+def _sensor_effects(points: np.ndarray, obj: np.ndarray, sensor: np.ndarray, centre: np.ndarray, height: float,
+                    glass: bool, rng: np.random.Generator, opts: SampleOptions) -> np.ndarray:
+    """Returns after ground roughness, glass, dark-patch and range-dependent losses (see SampleOptions); the
+    target is object 0, the ground -1. Draws nothing for effects that are off."""
+    pts = points.astype(np.float64)
+    keep = np.ones(len(pts), bool)
+    if opts.ground_roughness > 0:
+        ground = obj < 0
+        pts[ground, 2] += rng.normal(0.0, opts.ground_roughness, int(ground.sum()))
+    target = obj == 0
+    if opts.glass_dropout > 0 and glass:
+        frac = rng.uniform(0.0, opts.glass_dropout)
+        belt = rng.uniform(0.5, 0.7)
+        h = (pts[:, 2] - (centre[2] - height / 2)) / height
+        hit = target & (h > belt) & (h < 0.93) & (rng.random(len(pts)) < frac)
+        through = hit & (rng.random(len(pts)) < opts.glass_passthrough)
+        ray = pts[through] - sensor
+        rng_ = np.linalg.norm(ray, axis=1, keepdims=True)
+        pts[through] = sensor + ray * (1.0 + rng.uniform(0.2, 1.5, (len(ray), 1)) / np.maximum(rng_, 1e-9))
+        keep &= ~(hit & ~through)
+    if opts.patch_dropout > 0:
+        tgt = np.flatnonzero(target)
+        for _ in range(int(rng.poisson(opts.patch_dropout))):
+            if not len(tgt):
+                break
+            c = pts[tgt[int(rng.integers(len(tgt)))]]
+            radius, prob = rng.uniform(0.3, 0.8), rng.uniform(0.7, 1.0)
+            near = target & (((pts - c) ** 2).sum(1) < radius ** 2)
+            keep &= ~(near & (rng.random(len(pts)) < prob))
+    if opts.range_dropout > 0:
+        dark = rng.uniform(0.5, 1.5)
+        r = np.linalg.norm(pts - sensor, axis=1)
+        p = np.minimum(opts.range_dropout * (r / 50.0) ** 2 * np.where(target, dark, 1.0), 0.95)
+        keep &= rng.random(len(pts)) >= p
+    return pts[keep].astype(np.float32)
 
 
 def network_partial(points: np.ndarray, box: Box3D, prep: Preprocessing, n_input: int
@@ -196,11 +276,25 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
         reach = np.linalg.norm(np.maximum(size, box_size)[:2]) / 2 + np.linalg.norm(noise[:2])
         half = np.degrees(np.arctan2(reach + margin + 0.5, dist)) if dist > 8 else 180.0
         window = (np.degrees(az) - half, np.degrees(az) + half)
-        scan = scan_meshes([world] + ([occluder] if occluder is not None else []), (0.0, 0.0, sensor_h), pat, rng,
-                           azimuth_range=window, ground_z=0.0)
+        sensor = np.array([0.0, 0.0, sensor_h])
+        heading = np.degrees(az) + rng.uniform(-0.5, 0.5) * pat.fov_deg if pat.fov_deg < 360 else 0.0
+        scene = [world] + ([occluder] if occluder is not None else [])
+        ground: dict[str, Any] = {"ground_z": 0.0}
+        if opts.tilt_deg > 0:  # the sensor rolls and pitches: the scene turns about it, the ground too
+            tilt = _tilt(rng, opts)
+            scene = [Mesh(sensor + (m.vertices - sensor) @ tilt.T, m.faces) for m in scene]
+            world = scene[0]
+            centre = sensor + tilt @ (centre - sensor)
+            ground = {"ground_plane": (tilt[:, 2], float(tilt[:, 2] @ sensor) - sensor_h)}
+        scan = scan_meshes(scene, sensor, pat, rng, azimuth_range=window, sensor_heading_deg=heading,
+                           mixed_pixel_prob=opts.mixed_pixel_prob, **ground)
+        points = scan.points
+        if opts.ground_roughness > 0 or opts.glass_dropout > 0 or opts.patch_dropout > 0 or opts.range_dropout > 0:
+            points = _sensor_effects(points, scan.object_index, sensor, centre, float(size[2]),
+                                     _has_glass(kind, label), rng, opts)
         box = Box3D(center=tuple(float(c) for c in centre + noise[:3]), size=tuple(float(s) for s in box_size),
                     yaw=float(yaw + noise[6]), label=label, instance_id=0)
-        found = network_partial(scan.points, box, prep, n_input)
+        found = network_partial(points, box, prep, n_input)
         if found is not None:
             partial, n_points = found
             break
@@ -210,7 +304,8 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
     meta = {"kind": kind, "label": label, "pattern": pat.name, "n_points": n_points, "distance": float(dist),
             "azimuth": float(az), "yaw": float(yaw), "sensor_height": float(sensor_h),
             "size": box_size.astype(np.float32), "true_size": size.astype(np.float32),
-            "box_noise": noise.astype(np.float32), "occluded": occluder is not None, "attempts": attempt + 1}
+            "box_noise": noise.astype(np.float32), "occluded": occluder is not None, "attempts": attempt + 1,
+            "sensor_heading": float(heading)}
     if surface_resample:
         meta["surface_resample"] = normalize(sample_surface(world, n_gt, rng), box).astype(np.float32)
     return partial, gt, meta

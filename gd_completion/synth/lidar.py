@@ -9,7 +9,7 @@ import numpy as np
 from gd_completion.synth.beams import BeamPattern
 from gd_completion.synth.meshio import Mesh
 
-__all__ = ["ScanResult", "simulate_scan", "scan_meshes"]
+__all__ = ["ScanResult", "simulate_scan", "scan_meshes", "intersect_arcs"]
 
 
 @functools.lru_cache(maxsize=16)
@@ -76,6 +76,58 @@ def _triangle_windows(p: np.ndarray) -> tuple[np.ndarray, ...]:
     return a_start, np.where(full, 2 * np.pi, arc), t_lo, t_hi
 
 
+def intersect_arcs(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float] | None:
+    """Overlap of two azimuth arcs (deg, [lo, hi] counter-clockwise; hi - lo >= 360 is the full circle), as
+    [lo, hi] in `a`'s turn; None when they do not overlap. Two overlaps (arcs over 360 deg together)
+    give the longer one."""
+    wa, wb = a[1] - a[0], b[1] - b[0]
+    if wa >= 360.0:
+        return (float(b[0]), float(b[1])) if wb < 360.0 else (float(a[0]), float(a[1]))
+    if wb >= 360.0:
+        return float(a[0]), float(a[1])
+    start = (b[0] - a[0]) % 360.0
+    pieces = []
+    for s0 in (start, start - 360.0):
+        lo, hi = max(0.0, s0), min(wa, s0 + wb)
+        if hi > lo:
+            pieces.append((lo, hi))
+    if not pieces:
+        return None
+    lo, hi = max(pieces, key=lambda p: p[1] - p[0])
+    return float(a[0] + lo), float(a[0] + hi)
+
+
+def _mix_pixels(grid: np.ndarray, beam: np.ndarray, j: np.ndarray, r: np.ndarray, pattern: BeamPattern,
+                rng: np.random.Generator, prob: float, jump: float) -> np.ndarray:
+    """Ranges `r` of returns (beam, firing j) with mixed pixels at depth discontinuities of the range `grid`
+    (n_beams, n_az; inf without return): see `scan_meshes`."""
+    n_beams, n_az = grid.shape
+    res = 360.0 / n_az
+    elev = np.asarray(pattern.elevations_deg)
+    off = np.asarray(pattern.azimuth_offsets_deg)
+    order = np.argsort(elev, kind="stable")
+    rank = np.empty(n_beams, np.int64)
+    rank[order] = np.arange(n_beams)
+    r0 = grid[beam, j]
+    neigh = [grid[beam, (j - 1) % n_az], grid[beam, (j + 1) % n_az]]
+    for step in (-1, 1):
+        other = order[np.clip(rank[beam] + step, 0, n_beams - 1)]
+        jo = (j + np.rint((off[beam] - off[other]) / res).astype(np.int64)) % n_az
+        neigh.append(np.where(other != beam, grid[other, jo], r0))
+    nb = np.stack(neigh)
+    gap = np.abs(nb - r0)
+    edge = np.isfinite(nb) & (gap > np.maximum(jump, 0.05 * r0))
+    # the neighbour across the largest discontinuity
+    k = np.argmax(np.where(edge, gap, -1.0), axis=0)
+    has = edge.any(axis=0)
+    pick = has & (rng.random(len(r)) < prob)
+    other_r = nb[k, np.arange(len(r))]
+    u = rng.random(len(r))
+    out = r.copy()
+    out[pick] = (r0 + u * (other_r - r0))[pick] + (r - r0)[pick]  # keep the return's range noise
+    return out
+
+
 def _object_visible(mesh: Mesh, sensor: np.ndarray, az_range: tuple[float, float] | None, max_range: float) -> bool:
     """Bounding-box test of an object against the range limit and the azimuth window."""
     b = mesh.bounds - sensor
@@ -99,15 +151,34 @@ def scan_meshes(meshes: list[Mesh], sensor_position: np.ndarray | tuple[float, f
                 rng: np.random.Generator, *, azimuth_range: tuple[float, float] | None = None,
                 range_noise_std: float = 0.02, dropout: float = 0.05, max_range: float = 120.0,
                 ground_z: float | None = None, reflectivity: np.ndarray | None = None,
-                ground_reflectivity: float = 0.25, max_pairs: int = 1_500_000) -> ScanResult:
+                ground_reflectivity: float = 0.25, max_pairs: int = 1_500_000,
+                ground_plane: tuple[np.ndarray | tuple[float, float, float], float] | None = None,
+                sensor_heading_deg: float = 0.0, mixed_pixel_prob: float = 0.0,
+                mixed_pixel_jump: float = 0.3) -> ScanResult:
     """Cast every firing of one revolution against `meshes` (world frame, sensor axes = world axes).
 
     Each triangle is rasterised into the (beam, firing) grid through a conservative angular window, the
     candidate (ray, triangle) pairs get an exact Moller-Trumbore test, and the nearest hit per ray wins, so
     self-occlusion and occlusion between objects are exact. `azimuth_range` (deg, [lo, hi] counter-clockwise
-    from +x) keeps only firings in that window.
+    from +x) keeps only firings in that window. A pattern with a horizontal field of view under 360 deg (a
+    forward-facing solid-state sensor) fires only within `sensor_heading_deg` +- fov/2 (intersected with
+    `azimuth_range`). The ground is the plane z = `ground_z`, or `ground_plane` = (normal n, offset c): the
+    points p with n . p = c (a tilted ground), when given.
+
+    Mixed pixels: with `mixed_pixel_prob` > 0, a return whose neighbour in the grid (the next firing of its
+    beam either side, or the beam above or below at the same azimuth) lies more than
+    max(`mixed_pixel_jump`, 5 % of the range) farther or nearer is, with that probability, moved to a range
+    drawn uniformly between the two: the beam straddles a depth discontinuity and the receiver averages
+    the foreground and background echoes (the "veil" along silhouettes). Neighbours without a return
+    (open sky) give no mixed pixel.
     """
     sensor = np.asarray(sensor_position, dtype=np.float64).reshape(3)
+    if pattern.fov_deg < 360.0:
+        fov = (sensor_heading_deg - pattern.fov_deg / 2, sensor_heading_deg + pattern.fov_deg / 2)
+        azimuth_range = fov if azimuth_range is None else intersect_arcs(azimuth_range, fov)
+        if azimuth_range is None:
+            return ScanResult(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int32),
+                              np.zeros(0, np.int16))
     sin_e, cos_e, cos_az, sin_az, groups, res = _ray_tables(pattern)
     n_beams, n_az = len(sin_e), cos_az.shape[1]
     n_rays = n_beams * n_az
@@ -168,16 +239,40 @@ def scan_meshes(meshes: list[Mesh], sensor_position: np.ndarray | tuple[float, f
         np.minimum.at(best, ray, tt)
         win = tt == best[ray]
         best_src[ray[win]] = tri[win]
-    if ground_z is not None and sensor[2] > ground_z:
+    # Firings that can fall in the azimuth window (all of them without one): the ground and the returns
+    # are only looked at there (dense patterns have far more firings than a vehicle's window).
+    cols = np.arange(n_az)
+    if azimuth_range is not None:
+        lo_a, hi_a = np.radians(azimuth_range)
+        offs = np.radians(np.asarray(pattern.azimuth_offsets_deg))
+        c0 = int(np.floor((lo_a - offs.max()) / res)) - 2
+        c1 = int(np.ceil((hi_a - offs.min()) / res)) + 2
+        if c1 - c0 + 1 < n_az:
+            cols = np.unique(np.arange(c0, c1 + 1) % n_az)
+    cand = np.arange(n_beams)[:, None] * n_az + cols[None, :]
+    if ground_plane is not None:
+        n = np.asarray(ground_plane[0], dtype=np.float64).reshape(3)
+        n = n / np.linalg.norm(n)
+        height = float(n @ sensor - ground_plane[1])
+        if height > 0:
+            nd = (n[0] * cos_az[:, cols] + n[1] * sin_az[:, cols]) * cos_e[:, None] + n[2] * sin_e[:, None]
+            with np.errstate(divide="ignore"):
+                tg_c = np.where(nd < -1e-9, -height / nd, np.inf)
+            tg_c[tg_c > max_range] = np.inf
+            g = tg_c < best[cand]
+            best[cand[g]] = tg_c[g]
+            best_src[cand[g]] = -2
+    elif ground_z is not None and sensor[2] > ground_z:
         down = sin_e < -1e-9
         tg = np.full(n_beams, np.inf)
         tg[down] = (ground_z - sensor[2]) / sin_e[down]
         tg = np.where(tg <= max_range, tg, np.inf)
-        tg_all = np.repeat(tg, n_az)
-        g = tg_all < best
-        best[g] = tg_all[g]
-        best_src[g] = -2
-    rays = np.flatnonzero(np.isfinite(best))
+        tg_c = np.broadcast_to(tg[:, None], cand.shape)
+        g = tg_c < best[cand]
+        best[cand[g]] = tg_c[g]
+        best_src[cand[g]] = -2
+    cand = cand.reshape(-1)
+    rays = cand[np.isfinite(best[cand])]  # ascending: cols are sorted
     beam, j = rays // n_az, rays % n_az
     if azimuth_range is not None:
         lo_a, hi_a = np.radians(azimuth_range)
@@ -192,6 +287,8 @@ def scan_meshes(meshes: list[Mesh], sensor_position: np.ndarray | tuple[float, f
     r = best[rays]
     if range_noise_std > 0:
         r = r + rng.normal(0.0, range_noise_std, len(r))
+    if mixed_pixel_prob > 0 and len(rays):
+        r = _mix_pixels(best.reshape(n_beams, n_az), beam, j, r, pattern, rng, mixed_pixel_prob, mixed_pixel_jump)
     src = best_src[rays]
     on_obj = src >= 0
     obj = np.full(len(rays), -1, np.int32)
