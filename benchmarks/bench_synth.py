@@ -32,7 +32,7 @@ def main() -> None:
 
     torch.set_num_threads(1)
     from gd_completion.synth.beams import PATTERN_NAMES, BeamPattern
-    from gd_completion.synth.dataset import build_dataset, make_sample, sample_rng
+    from gd_completion.synth.dataset import V1_SAMPLING, V2_SAMPLING, build_dataset, make_sample, sample_rng
     from gd_completion.synth.lidar import simulate_scan
     from gd_completion.synth.scene import synthetic_drive
     from gd_completion.synth.vehicles import VEHICLE_KINDS, generate_vehicle
@@ -41,7 +41,7 @@ def main() -> None:
     t = _best(lambda: [generate_vehicle(rng, k) for k in VEHICLE_KINDS], 3) / len(VEHICLE_KINDS)
     print(f"generate_vehicle: {t * 1e3:.1f} ms per mesh")
 
-    print("single sedan scan (full revolution, no ground), ms:")
+    print("single sedan scan (full revolution or field of view, no ground), ms:")
     car = generate_vehicle(np.random.default_rng(1), "sedan")
     for name in PATTERN_NAMES:
         pattern = BeamPattern.named(name)
@@ -59,15 +59,19 @@ def main() -> None:
           f"({np.mean([len(f.points) for f in frames]):.0f} points/frame)")
 
     n = args.samples
-    t0 = time.perf_counter()
-    for i in range(n):
-        make_sample(sample_rng(0, i))
-    dt = time.perf_counter() - t0
-    print(f"make_sample (1024 / 2048 points, serial): {n / dt:.1f} samples/s")
-    t0 = time.perf_counter()
-    build_dataset(n, seed=0, workers=args.workers)
-    dt = time.perf_counter() - t0
-    print(f"build_dataset({n}, workers={args.workers}): {n / dt:.1f} samples/s (incl. process start-up)")
+    for name, options in (("V1_SAMPLING", V1_SAMPLING), ("V2_SAMPLING", V2_SAMPLING)):
+        for i in range(4):  # warm the pattern tables
+            make_sample(sample_rng(1, i), options=options)
+        t0 = time.perf_counter()
+        for i in range(n):
+            make_sample(sample_rng(0, i), options=options)
+        dt = time.perf_counter() - t0
+        print(f"make_sample {name} (1024 / 2048 points, serial): {n / dt:.1f} samples/s")
+    for name, options in (("V1_SAMPLING", V1_SAMPLING), ("V2_SAMPLING", V2_SAMPLING)):
+        t0 = time.perf_counter()
+        build_dataset(n, seed=0, workers=args.workers, options=options)
+        dt = time.perf_counter() - t0
+        print(f"build_dataset({n}, workers={args.workers}, {name}): {n / dt:.1f} samples/s (incl. process start-up)")
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ from gd_completion.synth.vehicles import VEHICLE_KINDS, generate_vehicle, pertur
 _LAZY = {
     "SyntheticFrame": "scene", "synthetic_drive": "scene",
     "make_sample": "dataset", "build_dataset": "dataset", "save_dataset": "dataset", "load_dataset": "dataset",
+    "SampleOptions": "dataset", "V1_SAMPLING": "dataset", "V2_SAMPLING": "dataset",
 }
 
 __all__ = [

@@ -42,7 +42,8 @@ class SampleOptions:
     """What shapes a training pair beyond its size (see `make_sample`); defaults reproduce version 1 exactly.
 
     kinds: procedural kinds drawn (uniformly) when a shape is procedural. patterns: beam patterns drawn
-    (uniformly) per sample. size_spread: widening of the kinds' size ranges (`vehicles.size_range`).
+    (uniformly) per sample. size_spread: widening of the kinds' size ranges (`vehicles.size_range`) and of
+    the per-axis scale of mesh shapes (0.9-1.1 without spread).
     box_noise_prob: probability that the box used to crop and normalise is perturbed like a detector's:
     centre N(0, box_center_sigma) in x and y and N(0, box_z_sigma) in z (m), each size axis times
     1 + N(0, box_size_sigma), yaw + N(0, box_yaw_sigma_deg) degrees; the complete surface is normalised by
@@ -147,7 +148,8 @@ def _draw_shape(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
     if not meshes:
         raise ValueError("make_sample: empty mesh list")
     i = int(rng.integers(len(meshes)))
-    mesh = perturb_mesh(meshes[i].centered(), rng)
+    spread = opts.size_spread  # the mesh's random per-axis scale widens as the kinds' size ranges do
+    mesh = perturb_mesh(meshes[i].centered(), rng, scale=(0.9 - spread, 1.1 + spread))
     return mesh, f"mesh:{i}", _label_for_extent(mesh.extent)
 
 
