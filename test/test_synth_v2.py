@@ -68,9 +68,11 @@ def test_options_round_trip_and_validation():
 
 def _boxes(meta: dict) -> tuple[Box3D, Box3D]:
     """(true box, noisy box) of a sample from its meta."""
-    dist, az, yaw = meta["distance"], meta["azimuth"], meta["yaw"]
     true = np.asarray(meta["true_size"], np.float64)
-    centre = np.array([dist * np.cos(az), dist * np.sin(az), true[2] / 2])
+    centre, yaw = np.asarray(meta["true_center"], np.float64), meta["yaw"]
+    dist, az = meta["distance"], meta["azimuth"]
+    if not np.any(meta["tilt"]):
+        np.testing.assert_allclose(centre, [dist * np.cos(az), dist * np.sin(az), true[2] / 2], atol=1e-5)
     n = np.asarray(meta["box_noise"], np.float64)
     return (Box3D(tuple(centre), tuple(true), yaw), Box3D(tuple(centre + n[:3]), tuple(meta["size"]), yaw + n[6]))
 
@@ -366,9 +368,25 @@ def test_v2_preset_sample_is_deterministic_and_uses_every_effect():
     b = make_sample(sample_rng(1, 3), n_input=128, n_gt=128, options=V2_SAMPLING)
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
-    tilted = make_sample(sample_rng(1, 3), "sedan", pattern="hdl64e", n_input=128, n_gt=512,
-                         options=SampleOptions(tilt_deg=3.0))
-    assert np.isfinite(tilted[1]).all() and tilted[2]["n_points"] >= 20
+
+
+def test_tilted_sensor_sees_the_vehicle_on_the_tilted_ground():
+    for i in range(3):
+        partial, complete, meta = make_sample(sample_rng(1, i), "sedan", pattern="hdl64e", n_input=256, n_gt=4096,
+                                              options=SampleOptions(tilt_deg=3.0))
+        roll, pitch = np.radians(meta["tilt"])
+        assert np.abs(meta["tilt"]).max() > 0.3
+        cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+        rot = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+        n = rot[:, 2]
+        sensor = np.array([0.0, 0.0, meta["sensor_height"]])
+        true_box, box = _boxes(meta)
+        world = denormalize(complete, box)
+        above = world @ n - (n @ sensor - meta["sensor_height"])  # height over the tilted ground
+        assert abs(above.min()) < 0.02  # the wheels stand on it
+        assert (world[:, 2] - world[:, 2].min()).max() > 1.2
+        d = np.sqrt(((partial[:, None] - complete[None]) ** 2).sum(-1)).min(1) * meta["size"][0]
+        assert np.median(d) < 0.06
 
 
 def test_v2_workers_match_serial(shared_data):

@@ -175,12 +175,13 @@ def _box_noise(rng: np.random.Generator, opts: SampleOptions) -> np.ndarray:
     return noise
 
 
-def _tilt(rng: np.random.Generator, opts: SampleOptions) -> np.ndarray:
-    """3x3 rotation of a sensor rolled and pitched by N(0, tilt_deg) each (identity without tilt)."""
-    roll, pitch = np.radians(rng.normal(0.0, opts.tilt_deg, 2))
+def _tilt(rng: np.random.Generator, opts: SampleOptions) -> tuple[np.ndarray, np.ndarray]:
+    """(3x3 rotation, (roll, pitch) in degrees) of a sensor rolled and pitched by N(0, tilt_deg) each."""
+    angles = rng.normal(0.0, opts.tilt_deg, 2)
+    roll, pitch = np.radians(angles)
     cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
     return np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]]) @ \
-        np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+        np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]]), angles
 
 
 def _has_glass(kind: str, label: str) -> bool:
@@ -251,7 +252,10 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
     `surface_resample` adds meta["surface_resample"]: a second, independent uniform sample of the same surface
     (drawn last, so the pair is the same with or without it), whose Chamfer distance to `complete` is the
     metric's floor. meta["size"] is the size of the box used (noisy or not), meta["true_size"] the vehicle's,
-    meta["box_noise"] the (7,) error (centre offset, size factors, yaw offset; see `_box_noise`).
+    meta["box_noise"] the (7,) error (centre offset, size factors, yaw offset; see `_box_noise`) of the box
+    against the vehicle's (centre meta["true_center"], heading meta["yaw"]); meta["tilt"] the sensor's
+    (roll, pitch) in degrees; meta["sensor_heading"] the heading (deg) of a forward-facing pattern, which is
+    turned towards the vehicle give or take half its field of view (so vehicles near the edge are cut).
     """
     opts = options or V1_SAMPLING
     if pattern is None:
@@ -282,8 +286,9 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
         heading = np.degrees(az) + rng.uniform(-0.5, 0.5) * pat.fov_deg if pat.fov_deg < 360 else 0.0
         scene = [world] + ([occluder] if occluder is not None else [])
         ground: dict[str, Any] = {"ground_z": 0.0}
+        tilt_angles = np.zeros(2)
         if opts.tilt_deg > 0:  # the sensor rolls and pitches: the scene turns about it, the ground too
-            tilt = _tilt(rng, opts)
+            tilt, tilt_angles = _tilt(rng, opts)
             scene = [Mesh(sensor + (m.vertices - sensor) @ tilt.T, m.faces) for m in scene]
             world = scene[0]
             centre = sensor + tilt @ (centre - sensor)
@@ -307,7 +312,8 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
             "azimuth": float(az), "yaw": float(yaw), "sensor_height": float(sensor_h),
             "size": box_size.astype(np.float32), "true_size": size.astype(np.float32),
             "box_noise": noise.astype(np.float32), "occluded": occluder is not None, "attempts": attempt + 1,
-            "sensor_heading": float(heading)}
+            "sensor_heading": float(heading), "tilt": tilt_angles.astype(np.float32),
+            "true_center": centre.astype(np.float32)}
     if surface_resample:
         meta["surface_resample"] = normalize(sample_surface(world, n_gt, rng), box).astype(np.float32)
     return partial, gt, meta
