@@ -1,4 +1,4 @@
-"""Rotating-lidar simulation: vectorised ray casting of a beam pattern against triangle meshes."""
+"""Lidar simulation: vectorised ray casting of a beam pattern (rotating or forward-facing) against triangle meshes."""
 from __future__ import annotations
 
 import functools
@@ -304,10 +304,12 @@ def scan_meshes(meshes: list[Mesh], sensor_position: np.ndarray | tuple[float, f
 def simulate_scan(meshes: list[Mesh], sensor_position: np.ndarray | tuple[float, float, float],
                   pattern: BeamPattern | str, rng: np.random.Generator, *,
                   azimuth_range: tuple[float, float] | None = None, range_noise_std: float = 0.02,
-                  dropout: float = 0.05, max_range: float = 120.0, ground_z: float | None = None) -> np.ndarray:
+                  dropout: float = 0.05, max_range: float = 120.0, ground_z: float | None = None,
+                  sensor_heading_deg: float = 0.0, mixed_pixel_prob: float = 0.0) -> np.ndarray:
     """(N,3) float32 world-frame returns of one revolution of `pattern` at `sensor_position` (see `scan_meshes`)."""
     if isinstance(pattern, str):
         pattern = BeamPattern.named(pattern)
     return scan_meshes(meshes, sensor_position, pattern, rng, azimuth_range=azimuth_range,
                        range_noise_std=range_noise_std, dropout=dropout, max_range=max_range,
-                       ground_z=ground_z).points
+                       ground_z=ground_z, sensor_heading_deg=sensor_heading_deg,
+                       mixed_pixel_prob=mixed_pixel_prob).points
