@@ -1,8 +1,9 @@
 """Two-sided real-data metric: precision of output points where the reference observed the vehicle, F-score@tau.
 
 "Observed" (normalised box frame, vehicle length = 1). The multi-frame aggregate is the union of per-frame
-scans of the vehicle, each taken from a known sensor pose. For at most MAX_POSES of those frames (evenly
-spaced over the frames that saw the vehicle) the sensor position is moved into the box frame and that
+scans of the vehicle, each taken from a known sensor pose. For at most MAX_POSES of the frames in which the
+Pandar64 saw the vehicle (evenly spaced; frames with >= 50 in-box points when there are any; poses.json holds
+that lidar's pose, the PandarGT has none of its own) the sensor position is moved into the box frame and that
 frame's in-box points are binned in a spherical range image around it (ANGLE_BIN_DEG bins in azimuth and
 elevation), keeping per bin the *largest* measured range r: along that bin the sensor saw free space up to
 r (and a surface at r). An output point p is *judged* when, for at least one pose s, the bin in p's
@@ -25,9 +26,12 @@ import numpy as np
 from .nearest import nearest_sq
 
 TAU = 0.02
-OBSERVED_DEFINITION = " ".join(__doc__.split("\n\n", 1)[1].split())  # the report's definition: the docstring
 ANGLE_BIN_DEG = 0.4
 MAX_POSES = 16
+# The report's definition: the docstring's, with the constants' values.
+OBSERVED_DEFINITION = " ".join(__doc__.split("\n\n", 1)[1].split()).replace(
+    "MAX_POSES", str(MAX_POSES)).replace("ANGLE_BIN_DEG bins", f"{ANGLE_BIN_DEG} deg bins").replace(
+    "tau = TAU = 0.02", f"tau = {TAU}")
 
 
 @dataclass(frozen=True)
