@@ -7,20 +7,22 @@ import torch
 
 from gd_completion.model import chamfer_l2, farthest_point_sample
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.model.network import box_shape
 from gd_completion.model.ops import _nearest_k, knn_graph, torch_kernels, window_knn
 from gd_completion.pipeline import VehicleCompleter
 from gd_completion.synth.dataset import build_dataset
 
 
 @pytest.fixture(scope="module")
-def scans() -> dict:
-    """64 simulated lidar scans of procedural vehicles, cropped and normalised as the node does."""
-    return build_dataset(64, seed=8080, n_input=1024, n_gt=2048)
+def model():
+    return load_model(DEFAULT_WEIGHTS)
 
 
 @pytest.fixture(scope="module")
-def model():
-    return load_model(DEFAULT_WEIGHTS)
+def scans(model) -> dict:
+    """64 simulated lidar scans of procedural vehicles, cropped and normalised as the node does (at the
+    shipped model's input size, so a batched forward sees what the pipeline feeds it)."""
+    return build_dataset(64, seed=8080, n_input=model.config.num_input, n_gt=2048)
 
 
 def _same_up_to_exact_ties(query: torch.Tensor, ref: torch.Tensor, fast: tuple[torch.Tensor, torch.Tensor],
@@ -75,13 +77,18 @@ def test_kernel_window_edge_cases():
     assert knn_graph(torch.zeros(1, 1, 3), 4).shape == (1, 1, 0)
 
 
+def _shapes(scans) -> torch.Tensor:
+    return box_shape(scans["size"])
+
+
 def test_fast_path_equals_torch_path_on_32_scans(scans, model):
     x = torch.from_numpy(scans["partial"][:32])
     gt = torch.from_numpy(scans["complete"][:32])
+    shapes = _shapes(scans)[:32]
     with torch.inference_mode():
-        fast = model(x).completion
+        fast = model(x, shapes).completion
         with torch_kernels():
-            reference = model(x).completion
+            reference = model(x, shapes).completion
     assert (fast - reference).abs().max().item() <= 1e-3
     cd_fast = chamfer_l2(fast, gt).mean().item() * 1e4
     cd_ref = chamfer_l2(reference, gt).mean().item() * 1e4
@@ -92,23 +99,24 @@ def test_vehicle_alone_equals_vehicle_among_63_others(scans, model):
     partials = list(scans["partial"])        # 64 vehicles
     together = VehicleCompleter(model, threads=2)
     try:
-        frame = together.complete_normalized(partials)
+        frame = together.complete_normalized(partials, scans["size"])
     finally:
         together.close()
     alone = VehicleCompleter(model, threads=1)
     for i in (0, 17, 40, 63):
-        assert np.array_equal(alone.complete_normalized([partials[i]])[0], frame[i])
+        assert np.array_equal(alone.complete_normalized([partials[i]], scans["size"][i:i + 1])[0], frame[i])
     with torch.inference_mode():              # one batched forward: the same bits as well
-        batched = model(torch.from_numpy(scans["partial"])).completion.numpy()
+        batched = model(torch.from_numpy(scans["partial"]), _shapes(scans)).completion.numpy()
     assert np.array_equal(batched, frame)
 
 
 def test_torch_path_is_batch_independent(scans, model):
     x = torch.from_numpy(scans["partial"][:6])   # more than 4 clouds: once a switch of FPS arithmetic
+    shapes = _shapes(scans)[:6]
     with torch.inference_mode(), torch_kernels():
-        both = model(x).completion
+        both = model(x, shapes).completion
         for i in (0, 5):
-            assert torch.equal(model(x[i:i + 1]).completion, both[i:i + 1])
+            assert torch.equal(model(x[i:i + 1], shapes[i:i + 1]).completion, both[i:i + 1])
 
 
 def test_cpu_tensors_take_the_kernels_and_the_switch_restores(monkeypatch, scans):
@@ -142,10 +150,11 @@ def test_torch_path_still_trains(tmp_path):
 def test_cuda_torch_path_matches_cpu_fast_path(scans, model):
     import copy
     x = torch.from_numpy(scans["partial"][:8])
+    shapes = _shapes(scans)[:8]
     gpu = copy.deepcopy(model).to("cuda")
     with torch.inference_mode():
-        cpu_out = model(x).completion
-        gpu_out = gpu(x.cuda()).completion.cpu()
-        alone = gpu(x[3:4].cuda()).completion.cpu()
+        cpu_out = model(x, shapes).completion
+        gpu_out = gpu(x.cuda(), shapes.cuda()).completion.cpu()
+        alone = gpu(x[3:4].cuda(), shapes[3:4].cuda()).completion.cpu()
     assert (gpu_out - cpu_out).abs().max().item() <= 1e-3
     assert (alone - gpu_out[3:4]).abs().max().item() <= 1e-4

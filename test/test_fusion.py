@@ -193,7 +193,7 @@ def test_pipeline_completes_a_track_from_its_fused_partial() -> None:
     fusion = TrackFusion()
     completer = VehicleCompleter(model, preprocessing=prep, fusion=fusion, publish_fused_points=True)
     plain = VehicleCompleter(model, preprocessing=prep)
-    track = moving_track(frames=4, spacing=0.15)
+    track = moving_track(frames=4, spacing=0.22)
     assert sum(len(p) for p, _ in track) < model.config.num_input   # inputs repeat points: unique = fused
     totals = []
     for k, (points, box) in enumerate(track):

@@ -9,6 +9,7 @@ from gd_completion.errors import CheckpointError
 from gd_completion.geometry import Box3D
 from gd_completion.model import GGDNet
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, load_model, save_checkpoint
+from gd_completion.model.network import box_shape
 from gd_completion.pipeline import FrameStats, VehicleCompleter
 from gd_completion.preprocess import Preprocessing, crop_vehicles, network_input, resample_indices
 
@@ -21,9 +22,11 @@ class Recording(torch.nn.Module):
         self.model = model
         self.config = model.config
         self.inputs: list[torch.Tensor] = []
+        self.shapes: list[torch.Tensor | None] = []
 
     def forward(self, x: torch.Tensor, box_shape: torch.Tensor | None = None):
         self.inputs.append(x.detach().clone())
+        self.shapes.append(None if box_shape is None else box_shape.detach().clone())
         return self.model(x, box_shape)
 
 
@@ -57,10 +60,13 @@ def test_every_caller_feeds_the_network_the_same_input(parked_car):
     completion = VehicleCompleter(model).complete_frame(points, [box])         # node and `complete`
     assert completion.stats.completed == 1
     pipeline_input = model.inputs[-1][0].numpy()
+    pipeline_shape = model.shapes[-1]
+    torch.testing.assert_close(pipeline_shape, box_shape([box.size]), rtol=0, atol=0)
     training_input, kept = network_partial(points, box, Preprocessing(), n)    # training-data generation
     np.testing.assert_array_equal(training_input, pipeline_input)
-    network_outputs(model, [crop_vehicles(points, [box], Preprocessing())[0][0].normalized])   # evaluation
+    network_outputs(model, [crop_vehicles(points, [box], Preprocessing())[0][0].normalized], [box.size])  # evaluation
     np.testing.assert_array_equal(model.inputs[-1][0].numpy(), pipeline_input)
+    torch.testing.assert_close(model.shapes[-1], pipeline_shape, rtol=0, atol=0)
     assert pipeline_input.shape == (n, 3) and kept > n
 
 
