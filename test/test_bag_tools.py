@@ -338,6 +338,8 @@ def test_render_pairs_as_complete(delayed_boxes_bag: Path, kitti_bag: Path) -> N
 
 def test_complete_records_provenance(completed_bag: Path, model_path: str, tmp_path: Path) -> None:
     """Version, the model's SHA-256 and the parameters in metadata.yaml's custom_data (what `ros2 bag info` reads)."""
+    from gd_completion.model.checkpoint import read_checkpoint_metadata
+
     info = read_provenance(completed_bag)
     assert info["gd_completion.version"] == __version__
     assert info["gd_completion.command"] == "complete"
@@ -349,7 +351,9 @@ def test_complete_records_provenance(completed_bag: Path, model_path: str, tmp_p
     assert params["sync_tolerance"] == SYNC_TOLERANCE_S == 0.05
     completer = params["completer"]
     assert completer["labels"] == ["car", "truck", "van"] and completer["include_input_points"] is True
-    assert (completer["num_input_points"], completer["num_output_points"], completer["device"]) == (1024, 2048, "cpu")
+    config = read_checkpoint_metadata(model_path)["config"]
+    assert (completer["num_input_points"], completer["num_output_points"], completer["device"]) == (
+        config["num_input"], 2048, "cpu")
     assert completer["preprocessing"]["min_points"] == 20 and completer["preprocessing"]["crop_margin"] == 0.1
     # the sqlite3 storage keeps the same metadata
     out = tmp_path / "db"
