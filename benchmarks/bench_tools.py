@@ -35,6 +35,10 @@ class _CropOnly:
 
         self.inner = VehicleCompleter.from_checkpoint(model, **options)
 
+    def __getattr__(self, name: str):
+        """The inner completer's settings (labels, preprocessing, ...), e.g. for the bag's provenance."""
+        return getattr(self.inner, name)
+
     def complete_frame(self, points, boxes):
         import numpy as np
 
