@@ -85,8 +85,9 @@ def _pairs(data: ArrayPair, name: str, cfg: GGDConfig) -> tuple[torch.Tensor, to
     if len(data) == 3 and data[2] is not None:
         sizes = np.asarray(data[2], dtype=np.float32)
         if sizes.shape != (partial.shape[0], 3) or not np.isfinite(sizes).all() or (sizes <= 0).any():
-            raise DataFormatError(f"{name}: box sizes must be ({partial.shape[0]}, 3) positive, "
-                                  f"got shape {sizes.shape}")
+            raise DataFormatError(f"{name}: box sizes must be ({partial.shape[0]}, 3), finite and positive; got "
+                                  f"shape {sizes.shape}" + (", with non-finite or non-positive values"
+                                                            if sizes.shape == (partial.shape[0], 3) else ""))
         shapes = box_shape(sizes)
     elif cfg.box_conditioning:
         raise DataFormatError(f"{name}: a box-conditioned model needs the box sizes (partial, complete, sizes)")

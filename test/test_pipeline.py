@@ -102,3 +102,17 @@ def test_resample_indices_down_and_up() -> None:
     big, small = rng.normal(size=(3000, 3)).astype(np.float32), rng.normal(size=(5, 3)).astype(np.float32)
     assert len(np.unique(resample_indices(3000, big, 1024))) == 1024  # FPS picks distinct points
     np.testing.assert_array_equal(resample_indices(5, small, 1024), np.arange(1024) % 5)
+
+
+def test_box_sizes_reach_the_network(completer: VehicleCompleter, scene) -> None:
+    """The shipped model is box-conditioned: the box sizes change its output, a missing or mismatched size
+    list is a clear error, never a silent completion without the box."""
+    assert completer.model.config.box_conditioning
+    partial = (np.random.default_rng(3).random((300, 3), dtype=np.float32) - 0.5) * np.array([1, 0.4, 0.3], np.float32)
+    narrow = completer.complete_normalized([partial], [(4.5, 1.8, 1.5)])
+    wide = completer.complete_normalized([partial], [(4.5, 2.3, 1.9)])
+    assert narrow.shape == (1, completer.num_output, 3) and not np.array_equal(narrow, wide)
+    with pytest.raises(ValueError, match="box sizes"):
+        completer.complete_normalized([partial, partial], [(4.5, 1.8, 1.5)])
+    with pytest.raises(ValueError, match="box-conditioned"):
+        completer.complete_normalized([partial])

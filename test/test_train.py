@@ -179,6 +179,12 @@ def test_box_conditioned_training_needs_sizes_and_learns_to_use_them(tmp_path):
         train(cfg, (partial, complete), (partial[:2], complete[:2]), tmp_path / "a", _settings(epochs=1))
     sizes = np.tile(np.array([[4.5, 1.8, 1.5]], np.float32), (8, 1))
     sizes[::2, 1] = 2.4   # half of the boxes are wider
+    bad = sizes.copy()
+    bad[3, 2] = 0.0
+    for wrong, what in ((sizes[:7], "shape \\(7, 3\\)"), (bad, "non-positive")):
+        with pytest.raises(DataFormatError, match=what):
+            train(cfg, (partial, complete, wrong), (partial[:2], complete[:2], sizes[:2]), tmp_path / "x",
+                  _settings(epochs=1))
     res = train(cfg, (partial, complete, sizes), (partial[:2], complete[:2], sizes[:2]), tmp_path / "b",
                 _settings(epochs=2))
     model = load_model(res.last_path)
@@ -212,6 +218,11 @@ def test_train_command_from_a_recipe(tmp_path):
     assert not (tmp_path / "b" / "last.pt").exists()
     path.write_text(json.dumps({**recipe, "learning_rate": 0.1}))
     assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "c")]) == 2
+    path.write_text(json.dumps({**recipe, "sampling": "v9"}))
+    assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "d")]) == 2
+    path.write_text("{not json")
+    assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "e")]) == 2
+    assert not any((tmp_path / d).exists() for d in "cde")
 
 
 def test_cosine_learning_rate_schedule():

@@ -206,11 +206,12 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     if args.recipe is not None:
         apply_recipe(args, args.recipe)
+    options = sampling_options(args.sampling)   # a bad preset fails before any folder is made
     make_folder(args.output)  # an unwritable output fails before any work
     cache = make_folder(args.cache or args.output)
     config = load_config(args)
     spec = DatasetSpec(args.samples, args.seed, config.num_input, config.num_output, args.meshes,
-                       options=sampling_options(args.sampling))
+                       options=options)
     train_data = cached_dataset(cache, "train", spec, args.workers)
     val_spec = dataclasses.replace(spec, n_samples=args.val_samples, seed=args.seed + VALIDATION_SEED_OFFSET)
     val_data = cached_dataset(cache, "val", val_spec, args.workers)
