@@ -4,10 +4,11 @@ Usage: python benchmarks/bench_model.py [--repeats R] [--stages] [--train] [--pr
 
 Rows (ms per vehicle, eval + inference_mode, simulated lidar scans cropped and normalised as the node does):
 batch 1 with 1 and 2 torch threads, and a 16-vehicle frame over both cores (`VehicleCompleter` with one
-vehicle thread per core, one torch thread each). The two paths are timed interleaved (A, B, A, B, ...)
-so machine noise hits both alike; the min and the median over repeats are printed, and the fast/torch
-ratio of the medians. The model's own dense GEMMs (every addmm/mm of one forward, shapes recorded by the
-profiler) are replayed and timed in the same run: the floor that no neighbour-search work can go under.
+vehicle thread per core, one torch thread each; with the measured merge, and the fast path without it). The
+paths are timed interleaved (A, B, A, B, ...) so machine noise hits them alike; the min and the median over
+repeats are printed, and the fast/torch ratio of the medians. The model's own dense GEMMs (every addmm/mm of
+one forward, shapes recorded by the profiler) are replayed and timed in the same run: the floor that no
+neighbour-search work can go under.
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gd_completion.merge import merge_with_fed
 from gd_completion.model import GGDConfig, GGDNet, ggd_loss
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import box_shape
@@ -139,6 +141,7 @@ def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) ->
         knn = knn_graph(pg, cfg.knn_k, margin)
         idx = model.local.group(pg, x, order)
         feat = torch.cat([model.local(pg, x, order), pg, torch.zeros(1, pg.shape[1], 2)], -1)
+        completion = model(x, shape).completion[0].numpy()
         parts = {
             "fps": lambda: farthest_point_sample(x, order.shape[1]),
             "encoder": lambda: model.encoder(x, order, shape),
@@ -148,6 +151,7 @@ def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) ->
             "local MLP": lambda: torch.cat([model.local._features(pg[:, s:s + 1024], x, idx[:, s:s + 1024])
                                             for s in range(0, pg.shape[1], 1024)], 1),
             "G-ResNet": lambda: model.deform(feat, code, knn),
+            "merge": lambda: merge_with_fed(completion, x[0].numpy(), n),
         }
         times = _interleaved(parts, repeats, 1)
     for name, ts in times.items():
@@ -187,10 +191,13 @@ def main() -> None:
             {p: _forward(model, one, one_shape, p) for p in PATHS}, args.repeats, 1)
     torch.set_num_threads(1)
     completer = VehicleCompleter(model, threads=cores)
+    unmerged = VehicleCompleter(model, threads=cores, measured_merge=False)
     partials = list(frame.numpy())
     rows[f"16-vehicle frame, {cores} vehicle threads"] = _interleaved(
-        {p: _frame(completer, partials, sizes, p) for p in PATHS}, max(3, args.repeats // 2), len(partials))
+        {**{p: _frame(completer, partials, sizes, p) for p in PATHS},
+         "fast without merge": _frame(unmerged, partials, sizes, "fast")}, max(3, args.repeats // 2), len(partials))
     completer.close()
+    unmerged.close()
     for name, times in rows.items():
         ratio = statistics.median(times["fast"]) / statistics.median(times["torch"])
         cells = "  ".join(f"{p} {min(t):6.2f} / {statistics.median(t):6.2f}" for p, t in times.items())

@@ -147,7 +147,7 @@ def test_evaluate_synthetic_values():
     sizes = np.tile([4.0, 1.6, 1.2], (3, 1))  # the half-box shape (1, 0.4, 0.3) is normalised by a 4 m length
     result = evaluate_synthetic(GGDNet(TINY).eval(), partial, complete, sizes, seed=5, source="test")
     assert set(result.metrics) == set(baselines.BASELINE_NAMES)
-    assert result.points == {"input": 1024, "mirror": 2048, "box_fill": 256, "template": 256,
+    assert result.points == {"input": 1024, "mirror": 2048, "box_fill": 256, "template": 256, "ggd_merge": 256,
                              "mirror_template": 256, "generation": 256, "ggd": 256}
     # the box alone covers the hidden half far better than the raw input; mirror + template sits on the surface
     assert result.metrics["box_fill"]["cd_gd"] < result.metrics["input"]["cd_gd"] / 3
@@ -280,7 +280,7 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     synthetic = {cells(line)[0]: cells(line) for line in text.split("### Completeness by region")[0].splitlines()
                  if line.startswith(("| GGD-Net", "| generation only"))}
     row32 = cells(ablation_rows[0])
-    assert row32[3] == synthetic["GGD-Net"][1] and row32[4] == synthetic["generation only"][1]
+    assert row32[3] == synthetic["GGD-Net (network output)"][1] and row32[4] == synthetic["generation only"][1]
     assert "## Held-out meshes" in text and "held-out meshes of vehicle-meshes" in text
     pandaset = text.split("## PandaSet 002: single")[1].split("## PandaSet 002: track fusion")[0]
     pandaset_rows = [line for line in pandaset.splitlines() if line.startswith("| raw input")]

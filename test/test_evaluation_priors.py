@@ -141,4 +141,4 @@ def test_pandaset_evaluation_small(shared_data):
     for heading in ("random reference", "voxel-uniform reference", "Fidelity x1e3", "Two-sided", "Box noise",
                     "by sensor"):
         assert heading in text
-    assert result.worst and result.worst[0][0].endswith(f"cov {max(i.coverage['ggd'] for i in items):.2f}")
+    assert result.worst and result.worst[0][0].endswith(f"cov {max(i.coverage['ggd_merge'] for i in items):.2f}")

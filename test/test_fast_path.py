@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from gd_completion.evaluation.baselines import merged_outputs
 from gd_completion.model import chamfer_l2, farthest_point_sample
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import box_shape
@@ -105,9 +106,11 @@ def test_vehicle_alone_equals_vehicle_among_63_others(scans, model):
     alone = VehicleCompleter(model, threads=1)
     for i in (0, 17, 40, 63):
         assert np.array_equal(alone.complete_normalized([partials[i]], scans["size"][i:i + 1])[0], frame[i])
-    with torch.inference_mode():              # one batched forward: the same bits as well
+    with torch.inference_mode():              # one batched forward and the same merge: the same bits as well
         batched = model(torch.from_numpy(scans["partial"]), _shapes(scans)).completion.numpy()
-    assert np.array_equal(batched, frame)
+    assert np.array_equal(merged_outputs(model, partials, batched), frame)
+    unmerged = VehicleCompleter(model, threads=1, measured_merge=False)
+    assert np.array_equal(unmerged.complete_normalized(partials[:3], scans["size"][:3]), batched[:3])
 
 
 def test_torch_path_is_batch_independent(scans, model):

@@ -88,18 +88,19 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
     stationary = result.consistency[0]
     assert stationary.group == "stationary" and stationary.n_pairs >= 1
     assert math.isfinite(stationary.single) and math.isfinite(stationary.fused) and stationary.single > 0
+    assert math.isfinite(stationary.single_network) and stationary.single_network != stationary.single
 
 
 def test_fusion_section_text():
     from gd_completion.evaluation.report import fusion_section
 
     cov = [fusion_eval.CoverageRow(k, 3, 2.0 / (k or 20), 0.5, 2, 0.3, 0.6) for k in fusion_eval.FUSED_FRAMES]
-    cons = [fusion_eval.ConsistencyRow("stationary", 3, 10, 0.8, 0.2),
+    cons = [fusion_eval.ConsistencyRow("stationary", 3, 10, 0.8, 0.2, 0.5, 0.2),
             fusion_eval.ConsistencyRow("moving", 2, 5, 1.0, 0.9)]
     text = fusion_section(fusion_eval.FusionResult(cov, cons, 20, 10, None, 3, 2, {}))
     assert "## PandaSet 002: track fusion" in text and "| all (<= 20) |" in text
     assert "Target (a)/(c) <= 0.60 at k = 5: 0.500, met." in text
-    assert "stationary 0.250 (met), moving 0.900 (not met)" in text
+    assert "stationary 0.250 (met; without the merge 0.400), moving 0.900 (not met; without the merge nan)" in text
     assert "first 20 frames of each vehicle" in text and "first 10 frames" in text
 
 

@@ -6,18 +6,21 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from gd_completion.merge import merge_with_fed
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import network_input
 
 # Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s); "box_fill",
-# "template" and "mirror_template" are the box-only priors of `priors` (no learning).
+# "template" and "mirror_template" are the box-only priors of `priors` (no learning); "ggd" is the network's
+# P_o, "ggd_merge" what the pipeline publishes: P_o after the measured merge (`merge`).
 BASELINE_NAMES: tuple[str, ...] = ("input", "mirror", "box_fill", "template", "mirror_template", "generation",
-                                   "ggd")
+                                   "ggd", "ggd_merge")
 BASELINE_TITLES: dict[str, str] = {"input": "raw input", "mirror": "mirror symmetry",
                                    "box_fill": "box fill (uniform in the box, no input)",
                                    "template": "template (sedan fitted to the box, no input)",
                                    "mirror_template": "mirror + template, FPS to 2048",
-                                   "generation": "generation only", "ggd": "GGD-Net"}
+                                   "generation": "generation only", "ggd": "GGD-Net (network output)",
+                                   "ggd_merge": "GGD-Net + measured merge (published)"}
 
 
 def raw_input(partial: np.ndarray) -> np.ndarray:
@@ -108,3 +111,10 @@ def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
         empty = np.zeros((0, model.config.num_output, 3), np.float32)
         return empty, empty.copy()
     return np.concatenate(generated), np.concatenate(completion)
+
+
+def merged_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray], completion: np.ndarray) -> np.ndarray:
+    """(B, N_o, 3): each completion after the measured merge with the points its partial fed the network, as
+    the pipeline publishes it (`merge.merge_with_fed`)."""
+    merged = [merge_with_fed(c, p, model.config.num_input)[0] for p, c in zip(partials, completion)]
+    return np.stack(merged) if merged else np.zeros((0, model.config.num_output, 3), np.float32)

@@ -14,7 +14,7 @@ from gd_completion.geometry import box_problem, finite_mask
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
 
-from .baselines import network_outputs
+from .baselines import merged_outputs, network_outputs
 from .metrics import CD_SCALE, COVERAGE_SCALE, chamfer, coverage_error
 from .pandaset_eval import (
     MIN_INPUT_POINTS,
@@ -89,12 +89,16 @@ class ConsistencyRow:
     group: str  # "stationary" or "moving"
     n_vehicles: int
     n_pairs: int
-    single: float
+    single: float    # published completions (after the measured merge)
     fused: float
+    single_network: float = float("nan")   # the network's own outputs, without the merge
+    fused_network: float = float("nan")
     ratio: float = field(init=False)   # fused / single-frame (smaller is more consistent)
+    ratio_network: float = field(init=False)
 
     def __post_init__(self) -> None:
         self.ratio = _ratio(self.fused, self.single)
+        self.ratio_network = _ratio(self.fused_network, self.single_network)
 
 
 @dataclass
@@ -225,14 +229,16 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
     single_keys = sorted({(i, p) for i, (cover, steady) in plans.items() for p in [p for _, p in cover] + steady
                           if chosen[i].usable(p)})
     # both clouds are normalised by the frame's own box (the fused partial by the current box): its sizes
-    _, fused_out = network_outputs(model, [chosen[i].fused[p] for i, p in fused_keys],
-                                   np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(-1, 3),
-                                   max_batch=max_batch)
-    _, single_out = network_outputs(model, [chosen[i].single[p] for i, p in single_keys],
-                                    np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(-1, 3),
-                                    max_batch=max_batch)
-    fused_done = dict(zip(fused_keys, fused_out))
-    single_done = dict(zip(single_keys, single_out))
+    # (the published completion: the network's after the measured merge, as the pipeline gives it)
+    fused_in = [chosen[i].fused[p] for i, p in fused_keys]
+    _, fused_out = network_outputs(model, fused_in, np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(
+        -1, 3), max_batch=max_batch)
+    single_in = [chosen[i].single[p] for i, p in single_keys]
+    _, single_out = network_outputs(model, single_in, np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(
+        -1, 3), max_batch=max_batch)
+    fused_done = dict(zip(fused_keys, merged_outputs(model, fused_in, fused_out)))
+    single_done = dict(zip(single_keys, merged_outputs(model, single_in, single_out)))
+    fused_network, single_network = dict(zip(fused_keys, fused_out)), dict(zip(single_keys, single_out))
     seconds["network"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()
@@ -267,6 +273,8 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
     for name, group in (("stationary", True), ("moving", False)):
         single_cd: list[float] = []
         fused_cd: list[float] = []
+        single_net: list[float] = []
+        fused_net: list[float] = []
         vehicles = 0
         for i, (_, steady) in plans.items():
             track = chosen[i]
@@ -277,8 +285,10 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
             vehicles += bool(one)
             single_cd += one
             fused_cd += consistency([fused_done[(i, p)] for p in steady], frames_used)
-        rows_c.append(ConsistencyRow(name, vehicles, len(single_cd), _mean(np.array(single_cd)) * CD_SCALE,
-                                     _mean(np.array(fused_cd)) * CD_SCALE))
+            single_net += consistency([single_network[(i, p)] for p in steady], frames_used)
+            fused_net += consistency([fused_network[(i, p)] for p in steady], frames_used)
+        rows_c.append(ConsistencyRow(name, vehicles, len(single_cd), *(_mean(np.array(v)) * CD_SCALE for v in (
+            single_cd, fused_cd, single_net, fused_net))))
     seconds["metrics"] = time.perf_counter() - t3
     n_stationary = sum(t.stationary for t in chosen.values())
     return FusionResult(coverage, rows_c, max_frames, consistency_frames, max_vehicles, n_stationary,

@@ -16,7 +16,7 @@ from gd_completion.geometry import Box3D, box_problem, finite_mask, normalize
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import Preprocessing, crop_vehicles
 
-from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs
+from .baselines import BASELINE_NAMES, merged_outputs, mirror_symmetry, network_outputs
 from .box_noise import BoxNoise, noisy_box, reframe
 from .metrics import COVERAGE_SCALE, FIDELITY_SCALE
 from .nearest import nearest_sq
@@ -283,12 +283,14 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     partials = [t.points[k] for t, k in meta]
     sizes = np.array([t.boxes[k].size for t, k in meta], np.float64).reshape(-1, 3)
     generated, completion = network_outputs(model, partials, sizes, max_batch=max_batch)
+    merged = merged_outputs(model, partials, completion)
     noisy_meta = [i for i, (t, k) in enumerate(meta) if noise is not None and t.noisy[k] is not None]
     noisy_in = [meta[i][0].noisy[meta[i][1]] for i in noisy_meta]
     noisy_gen, noisy_out = network_outputs(model, [p for p, _ in noisy_in],
                                            np.array([b.size for _, b in noisy_in], np.float64).reshape(-1, 3),
                                            max_batch=max_batch)
-    noisy_nets = {i: (noisy_gen[j], noisy_out[j]) for j, i in enumerate(noisy_meta)}
+    noisy_merged = merged_outputs(model, [p for p, _ in noisy_in], noisy_out)
+    noisy_nets = {i: (noisy_gen[j], noisy_out[j], noisy_merged[j]) for j, i in enumerate(noisy_meta)}
     seconds["network"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()
@@ -298,7 +300,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
         partial, box = track.points[k], track.boxes[k]
         ref_random, ref_voxel, images = refs[track.uuid]
         outputs = {"input": partial, "mirror": mirror_symmetry(partial), **prior_outputs(partial, box.size, n_out),
-                   "generation": generated[i], "ggd": completion[i]}
+                   "generation": generated[i], "ggd": completion[i], "ggd_merge": merged[i]}
         item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], len(partial),
                             size_bin(len(partial)), {}, {})
         for name in BASELINE_NAMES:
@@ -315,7 +317,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             noisy_partial, shaken = track.noisy[k]
             noisy = {"input": noisy_partial, "mirror": mirror_symmetry(noisy_partial),
                      **prior_outputs(noisy_partial, shaken.size, n_out), "generation": noisy_nets[i][0],
-                     "ggd": noisy_nets[i][1]}
+                     "ggd": noisy_nets[i][1], "ggd_merge": noisy_nets[i][2]}
             stacked = reframe(np.concatenate([noisy[n] for n in BASELINE_NAMES]), shaken, box)
             bounds = np.cumsum([0] + [len(noisy[n]) for n in BASELINE_NAMES])
             for j, name in enumerate(BASELINE_NAMES):
@@ -326,8 +328,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     if noise is not None and len(noisy_meta) < len(meta):
         notes.append(f"box noise: {len(meta) - len(noisy_meta)} observations had no point in the noisy box and are "
                      "left out of the box-noise table (their clean figures too)")
-    examples = _examples(items, meta, completion, refs, n_examples)
-    worst = _worst(items, meta, completion, refs, n_examples)
+    examples = _examples(items, meta, merged, refs, n_examples)
+    worst = _worst(items, meta, merged, refs, n_examples)
     return PandaSetResult(items, len(refs), n_candidates, max_frames_per_vehicle, seconds, examples, notes, worst,
                           sensors, noise, random_points, reference_points)
 
@@ -342,7 +344,7 @@ def _render_item(item: PandaSetItem, partial: np.ndarray, completion: np.ndarray
 def _examples(items: list[PandaSetItem], meta: list[tuple[VehicleTrack, int]], completion: np.ndarray,
               refs: dict[str, tuple[np.ndarray, np.ndarray, RangeImages]], n: int
               ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
-    """Up to `n` render items (title, input, GGD-Net completion, voxel reference): each size bin in turn,
+    """Up to `n` render items (title, input, published completion, voxel reference): each size bin in turn,
     one observation per vehicle, the vehicles with the largest aggregates first."""
     order = sorted(range(len(items)), key=lambda i: -sum(len(p) for p in meta[i][0].points))
     chosen: list[int] = []
@@ -363,12 +365,13 @@ def _examples(items: list[PandaSetItem], meta: list[tuple[VehicleTrack, int]], c
 def _worst(items: list[PandaSetItem], meta: list[tuple[VehicleTrack, int]], completion: np.ndarray,
            refs: dict[str, tuple[np.ndarray, np.ndarray, RangeImages]], n: int
            ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
-    """The `n` observations with the highest GGD-Net coverage error (random reference), one per vehicle."""
+    """The `n` observations with the highest coverage error of the published completion (random reference), one
+    per vehicle."""
     chosen: list[int] = []
     seen: set[str] = set()
-    for i in sorted(range(len(items)), key=lambda i: -items[i].coverage["ggd"]):
+    for i in sorted(range(len(items)), key=lambda i: -items[i].coverage["ggd_merge"]):
         if items[i].uuid not in seen and len(chosen) < n:
             chosen.append(i)
             seen.add(items[i].uuid)
     return [_render_item(items[i], meta[i][0].points[meta[i][1]], completion[i], refs[items[i].uuid][1],
-                         f" cov {items[i].coverage['ggd']:.2f}") for i in chosen]
+                         f" cov {items[i].coverage['ggd_merge']:.2f}") for i in chosen]

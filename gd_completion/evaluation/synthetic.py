@@ -15,7 +15,7 @@ from gd_completion.model.checkpoint import load_model
 from gd_completion.model.network import GGDNet
 from gd_completion.synth.dataset import build_dataset, load_dataset
 
-from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs
+from .baselines import BASELINE_NAMES, merged_outputs, mirror_symmetry, network_outputs
 from .metrics import (
     CD_SCALE,
     FIDELITY_SCALE,
@@ -164,7 +164,7 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
                "mirror_template": np.stack([thinned_union([m, t], n_out) for m, t in
                                             zip(mirror_symmetry(partial), template_points(sizes, n_out))])
                if len(partial) else np.zeros((0, n_out, 3), np.float32),
-               "generation": generated, "ggd": completion}
+               "generation": generated, "ggd": completion, "ggd_merge": merged_outputs(model, partial, completion)}
     result: dict[str, dict[str, float]] = {}
     observed = observed_mask(complete, partial)
     observed_fraction = float("nan")

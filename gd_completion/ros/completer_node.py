@@ -142,6 +142,7 @@ class CompleterNode(Node):
         self.completer.preprocessing = replace(self._checkpoint_preprocessing, **overrides)
         self.completer.labels = frozenset(p.labels)
         self.completer.include_input_points = p.include_input_points
+        self.completer.measured_merge = p.measured_merge
         self.completer.limits = p.limits
         self.sync.tolerance_ns = int(p.sync_tolerance * 1e9)
         self.sync.max_wait_ns = int(p.sync_max_wait * 1e9)

@@ -44,6 +44,7 @@ class CompleterParams:
     sync_max_wait: float
     queue_size: int
     include_input_points: bool
+    measured_merge: bool
     limits: FrameLimits
     track_fusion: bool
     publish_fused_points: bool
@@ -95,6 +96,8 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "queue_size": (SYNC_QUEUE_SIZE, "Clouds and boxes messages buffered per stream while waiting for their partner.",
                    _int(1, 1000)),
     "include_input_points": (True, "Also publish the measured points of each completed vehicle (generated=0).", {}),
+    "measured_merge": (True, "Thin each completion together with the measured points fed to the network and their "
+                             "mirror image (measured points replace network points where they lie densely).", {}),
     # per-frame work limits (gd_completion.limits.FrameLimits); every skip is a counter in /diagnostics
     "max_boxes": (_LIMITS.max_boxes, "Boxes completed per frame at most, nearest first; the rest are skipped "
                                      "(too_many_boxes).", _int(1, 100000)),
@@ -136,7 +139,7 @@ LIMIT_PARAMETERS = {"max_boxes": "max_boxes", "max_box_length": "max_box_length"
 # Applied while the node runs (`ros2 param set`); every other parameter is declared read-only, so a set
 # is refused with rclpy's reason instead of reporting success and changing nothing.
 LIVE_PARAMETERS = frozenset({"min_points", "crop_margin", "labels", "class_map", "sync_tolerance", "sync_max_wait",
-                             "include_input_points", *LIMIT_PARAMETERS})
+                             "include_input_points", "measured_merge", *LIMIT_PARAMETERS})
 # Parameters every rclpy node may be given, besides the completer's own.
 STANDARD_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service", "start_parameter_services"})
 
