@@ -38,15 +38,14 @@ def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None =
         raise ValueError(f"cannot keep {n} of {len(union)} points")
     if n <= 0:
         return np.zeros((0, 3), np.float32), np.zeros(0, np.uint8)
-    # exact repeats (a sparse input's control points are cycled copies) would be picked again once every
-    # distinct point is taken: keep the first of each, in order
-    distinct = np.sort(np.unique(union, axis=0, return_index=True)[1])
-    if len(distinct) <= n:   # too few distinct points: all of them, then the completion's repeated cyclically
+    keep = fps_pruned(np.ascontiguousarray(union), n)
+    if len(np.unique(keep)) < n:
+        # every distinct point taken (FPS then repeats index 0): exact repeats in the union, e.g. a sparse
+        # input's cycled control points. All distinct points, then the completion's repeated cyclically.
+        distinct = np.sort(np.unique(union, axis=0, return_index=True)[1])
         network = distinct[distinct >= 2 * len(measured)]
         pool = network if len(network) else distinct
         keep = np.concatenate([distinct, pool[np.arange(n - len(distinct)) % len(pool)]])
-    else:
-        keep = distinct[fps_pruned(np.ascontiguousarray(union[distinct]), n)]
     return union[keep], np.where(keep < len(measured), MEASURED, GENERATED).astype(np.uint8)
 
 
