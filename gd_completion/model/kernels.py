@@ -1,7 +1,7 @@
 """Compiled CPU kernels (numba) for FPS and the x-window neighbour searches of `ops`.
 
-`fps_pruned` is the same FPS for large clouds (the measured merge): it skips the kd leaves that the newly
-chosen point cannot bring closer, and returns exactly what the plain scan returns.
+`fps_pruned` is the same FPS for large clouds (the measured merge): it skips the leaves of points that the
+newly chosen point cannot bring closer, and returns exactly what the plain scan returns.
 
 Same semantics and the same float32 arithmetic as the torch path in `ops`: squared distances are
 ((dx*dx + dy*dy) + dz*dz) with dx = a_x - b_x, FPS starts at point 0 and takes the first maximum,
@@ -56,95 +56,77 @@ def fps(xyz: np.ndarray, n: int) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _kd_leaves(xyz: np.ndarray, leaf: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A permutation of the points into kd-tree leaves of at most `leaf` points (median splits on the widest
-    axis), and the leaves' [start, end) ranges into it."""
+def _morton_order(xyz: np.ndarray) -> np.ndarray:
+    """A permutation of the points along a Z-order (Morton) curve over their bounding box, 10 bits per axis:
+    consecutive points are spatial neighbours, so fixed-size runs of them make compact leaves."""
     m = xyz.shape[0]
-    order = np.arange(m)
-    starts = np.empty(2 * m // leaf + 2, np.int64)
-    ends = np.empty(2 * m // leaf + 2, np.int64)
-    stack = np.empty((128, 2), np.int64)   # depth <= log2(m) < 64: two entries per level
-    stack[0, 0], stack[0, 1] = 0, m
-    top, count = 1, 0
-    while top > 0:
-        top -= 1
-        s, e = stack[top, 0], stack[top, 1]
-        if e - s <= leaf:
-            starts[count], ends[count] = s, e
-            count += 1
-            continue
-        axis, widest = 0, np.float32(-1.0)
+    lo = np.empty(3, np.float32)
+    span = np.empty(3, np.float32)
+    for a in range(3):
+        lo[a] = xyz[:, a].min()
+        span[a] = xyz[:, a].max() - lo[a]
+    codes = np.zeros(m, np.int64)
+    for i in range(m):
         for a in range(3):
-            lo, hi = _INF, -_INF
-            for i in range(s, e):
-                lo, hi = min(lo, xyz[order[i], a]), max(hi, xyz[order[i], a])
-            if hi - lo > widest:
-                axis, widest = a, hi - lo
-        segment = order[s:e].copy()
-        keys = np.empty(e - s, np.float32)
-        for i in range(e - s):
-            keys[i] = xyz[segment[i], axis]
-        perm = np.argsort(keys, kind="mergesort")
-        for i in range(e - s):
-            order[s + i] = segment[perm[i]]
-        mid = s + (e - s) // 2
-        stack[top, 0], stack[top, 1] = s, mid
-        stack[top + 1, 0], stack[top + 1, 1] = mid, e
-        top += 2
-    return order, starts[:count], ends[:count]
+            q = int((xyz[i, a] - lo[a]) / span[a] * 1023.0) if span[a] > 0 else 0
+            for b in range(10):
+                codes[i] |= ((q >> b) & 1) << (3 * b + a)
+    return np.argsort(codes, kind="mergesort")
 
 
 @numba.njit(cache=True, nogil=True)
-def fps_pruned(xyz: np.ndarray, n: int, leaf: int = 128) -> np.ndarray:
+def fps_pruned(xyz: np.ndarray, n: int, leaf: int = 32) -> np.ndarray:
     """Indices (n,) int64 of the farthest point sampling of one cloud xyz (M, 3) float32, n <= M: the same
     indices as `fps` (start at point 0, ties to the lowest index, the same float32 distances).
 
-    The points are grouped into kd leaves; a leaf is rescanned only when the new point lies closer to its
-    bounding box than the leaf's largest current distance (with a 1e-5 relative margin, far above float32
-    rounding), so a skipped leaf is one where no distance could have dropped.
+    The points are grouped into leaves of `leaf` consecutive points in Morton order; a leaf is rescanned only
+    when the new point lies closer to its bounding box than the leaf's largest current distance (with a 1e-5
+    relative margin, far above float32 rounding), so a skipped leaf is one where no distance could have dropped.
     """
     m = xyz.shape[0]
-    order, starts, ends = _kd_leaves(xyz, leaf)
-    leaves = starts.shape[0]
-    pts = np.empty((m, 3), np.float32)
+    order = _morton_order(xyz)
+    leaves = (m + leaf - 1) // leaf
+    px = np.empty(m, np.float32)
+    py = np.empty(m, np.float32)
+    pz = np.empty(m, np.float32)
     for i in range(m):
-        pts[i] = xyz[order[i]]
-    lo = np.full((leaves, 3), np.inf)
-    hi = np.full((leaves, 3), -np.inf)
+        px[i], py[i], pz[i] = xyz[order[i], 0], xyz[order[i], 1], xyz[order[i], 2]
+    lo = np.empty((leaves, 3), np.float32)
+    hi = np.empty((leaves, 3), np.float32)
     for f in range(leaves):
-        for i in range(starts[f], ends[f]):
-            for a in range(3):
-                lo[f, a] = min(lo[f, a], pts[i, a])
-                hi[f, a] = max(hi[f, a], pts[i, a])
+        s, e = f * leaf, min(m, (f + 1) * leaf)
+        lo[f, 0], hi[f, 0] = px[s:e].min(), px[s:e].max()
+        lo[f, 1], hi[f, 1] = py[s:e].min(), py[s:e].max()
+        lo[f, 2], hi[f, 2] = pz[s:e].min(), pz[s:e].max()
     mind = np.full(m, _INF, np.float32)
     leaf_max = np.full(leaves, _INF, np.float32)
     leaf_arg = np.zeros(leaves, np.int64)   # original index of the leaf's farthest point
+    shrink = np.float32(1.0 - 1e-5)
+    zero = np.float32(0.0)
     out = np.empty(n, np.int64)
     far = 0
     out[0] = 0
     for step in range(1, n):
-        c = xyz[far]
+        cx, cy, cz = xyz[far, 0], xyz[far, 1], xyz[far, 2]
         best = np.float32(-1.0)
         arg = m
         for f in range(leaves):
-            gap = 0.0
-            for a in range(3):
-                if c[a] < lo[f, a]:
-                    gap += (lo[f, a] - c[a]) ** 2
-                elif c[a] > hi[f, a]:
-                    gap += (c[a] - hi[f, a]) ** 2
-            if gap * (1.0 - 1e-5) <= leaf_max[f]:
+            gx = max(lo[f, 0] - cx, zero, cx - hi[f, 0])
+            gy = max(lo[f, 1] - cy, zero, cy - hi[f, 1])
+            gz = max(lo[f, 2] - cz, zero, cz - hi[f, 2])
+            if (gx * gx + gy * gy + gz * gz) * shrink <= leaf_max[f]:
+                s, e = f * leaf, min(m, (f + 1) * leaf)
                 top = np.float32(-1.0)
+                for i in range(s, e):
+                    dx = px[i] - cx
+                    dy = py[i] - cy
+                    dz = pz[i] - cz
+                    mind[i] = min(mind[i], dx * dx + dy * dy + dz * dz)
+                    top = max(top, mind[i])
                 top_arg = m
-                for i in range(starts[f], ends[f]):
-                    dx = pts[i, 0] - c[0]
-                    dy = pts[i, 1] - c[1]
-                    dz = pts[i, 2] - c[2]
-                    d = dx * dx + dy * dy + dz * dz
-                    if d < mind[i]:
-                        mind[i] = d
-                    if mind[i] > top or (mind[i] == top and order[i] < top_arg):
-                        top, top_arg = mind[i], order[i]
+                for i in range(s, e):   # the lowest original index among the leaf's farthest points
+                    if mind[i] == top and order[i] < top_arg:
+                        top_arg = order[i]
                 leaf_max[f], leaf_arg[f] = top, top_arg
             if leaf_max[f] > best or (leaf_max[f] == best and leaf_arg[f] < arg):
                 best, arg = leaf_max[f], leaf_arg[f]
