@@ -71,10 +71,12 @@ def main() -> None:
     ap.add_argument("--pandaset", type=int, default=None, metavar="N", help="replay PandaSet-002 frame N instead")
     ap.add_argument("--num-threads", type=int, default=0, help="node num_threads (0 = one vehicle thread per core)")
     ap.add_argument("--device", default="cpu", help="node device (cpu, cuda or cuda:N)")
+    ap.add_argument("--no-measured-merge", action="store_true", help="node parameter measured_merge:=false")
     args = ap.parse_args()
 
     frame = busy_frame(args.vehicles) if args.pandaset is None else pandaset_frame(args.pandaset)
-    params = {"num_threads": str(args.num_threads), "boxes_type": "marker", "device": args.device}
+    params = {"num_threads": str(args.num_threads), "boxes_type": "marker", "device": args.device,
+              "measured_merge": "false" if args.no_measured_merge else "true"}
     with benchmark_session(params, "bench") as (node, client):
         client.warm_up(frame, timeout=60)
         time.sleep(3.0)  # let the warm-up frames drain
@@ -103,7 +105,7 @@ def main() -> None:
         delta = {k: int(diag.get(k, 0) - base.get(k, 0)) for k in diag}
         print(f"frame {frame.index}: {len(frame.points)} points, {len(frame.boxes)} boxes; sent {len(sent)} frames at "
               f"{send_rate:.1f} Hz for {args.duration:.0f} s; node num_threads={args.num_threads}, "
-              f"device {args.device}")
+              f"device {args.device}, measured_merge {params['measured_merge']}")
         print(f"answered {len(answered)}/{len(sent)} frames ({len(answered) / args.duration:.2f} Hz), "
               f"vehicles completed {delta['vehicles_completed']}")
         if len(lat):
