@@ -96,6 +96,30 @@ def test_complete_keeps_every_input_message(kitti_bag: Path, completed_bag: Path
     assert n_generated > 0
 
 
+def test_complete_without_measured_merge(kitti_bag: Path, completed_bag: Path, model_path: str, tmp_path: Path
+                                        ) -> None:
+    """`--no-measured-merge` writes the network's completions as they are (num_output generated points per vehicle,
+    no measured point among them) and records it; the default merge keeps some measured points in each."""
+    from gd_completion.model.checkpoint import load_model
+
+    out = tmp_path / "unmerged"
+    assert main(["complete", str(kitti_bag), str(out), "--model", model_path, "--threads", "1", "--quiet",
+                 "--no-measured-merge"]) == 0
+    params = json.loads(read_provenance(out)["gd_completion.parameters"])
+    assert params["completer"]["measured_merge"] is False
+    assert json.loads(read_provenance(completed_bag)["gd_completion.parameters"])["completer"]["measured_merge"]
+    num_output = load_model(model_path).config.num_output
+    for bag, merged in ((out, False), (completed_bag, True)):
+        vehicles = 0
+        for _stamp, raw in _raw(bag)[1]["/kitti/completed"]:
+            pts = read_points(deserialize(raw, POINTCLOUD2))
+            for iid in np.unique(pts["instance_id"]).tolist():
+                generated = int((pts[pts["instance_id"] == iid]["generated"] == 1).sum())
+                assert generated < num_output if merged else generated == num_output
+                vehicles += 1
+        assert vehicles >= 5
+
+
 def test_complete_sqlite3_output(kitti_bag: Path, model_path: str, tmp_path: Path) -> None:
     out = tmp_path / "done"
     summary = complete_bag(kitti_bag, out, model=model_path, storage="sqlite3", progress=False,

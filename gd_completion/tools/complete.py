@@ -218,6 +218,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.labels:
         options["labels"] = [label.strip().lower() for label in args.labels.split(",") if label.strip()]
     options["limits"] = replace(OFFLINE_LIMITS, time_budget_s=args.time_budget or math.inf)
+    if args.no_measured_merge:
+        options["measured_merge"] = False
     if args.engine == "local" and many.is_single_bag(args.input):
         workers = args.workers or os.cpu_count() or 1
         summary = complete_bag(args.input[0], args.output, cloud_topic=args.cloud_topic,
@@ -294,6 +296,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "far, as the node's track_fusion (frames in order: --workers 1)")
     parser.add_argument("--publish-fused-points", action="store_true",
                         help="with --track-fusion, write the fused measured points instead of each frame's own")
+    parser.add_argument("--no-measured-merge", action="store_true",
+                        help="write the network's completions as they are, as the node's measured_merge:=false "
+                        "(default: thinned together with the measured points fed to the network and their mirror "
+                        "image)")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of completion per frame, as the node's time_budget (default: none offline, so "
                         "the output never depends on the machine's load)")
