@@ -114,7 +114,7 @@ class TrackFusion:
     def update(self, stamp_ns: int, vehicles: Sequence[CroppedVehicle]) -> list[CroppedVehicle]:
         """Add each vehicle (keyed by `box.instance_id`) to its track; return, in the same order, the vehicles
         with `normalized` the track's fused partial in the current box's normalised frame (most recent frame
-        first). `measured` and `box` stay the current frame's."""
+        first, its `current_rows` rows). `measured` and `box` stay the current frame's."""
         stamp_ns = int(stamp_ns)
         with self._lock:
             self._restart_if_time_went_back(stamp_ns)
@@ -126,10 +126,11 @@ class TrackFusion:
                     out.append(vehicle)
                     continue
                 seen.add(key)
-                out.append(replace(vehicle, normalized=self._add(stamp_ns, vehicle)))
+                fused, current = self._add(stamp_ns, vehicle)
+                out.append(replace(vehicle, normalized=fused, current_rows=current))
             return out
 
-    def _add(self, stamp_ns: int, vehicle: CroppedVehicle) -> np.ndarray:
+    def _add(self, stamp_ns: int, vehicle: CroppedVehicle) -> tuple[np.ndarray, int]:
         key, box = vehicle.box.instance_id, vehicle.box
         track = self._tracks.pop(key, None)
         if track is not None and stamp_ns - track.last_ns > self.limits.expiry_s * 1e9:
@@ -148,7 +149,7 @@ class TrackFusion:
         while len(self._tracks) > self.limits.max_tracks:
             self._tracks.popitem(last=False)
             self._evicted += 1
-        return fused
+        return fused, len(track.frames[-1])
 
     def _restart_if_time_went_back(self, stamp_ns: int) -> int:
         """Drop every track when `stamp_ns` is earlier than the latest stamp seen; returns how many."""

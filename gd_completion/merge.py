@@ -10,13 +10,26 @@ a template instead of the network) is the "mirror + template" prior of the evalu
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from gd_completion.model.kernels import fps_pruned
-from gd_completion.preprocess import network_input
+from gd_completion.preprocess import resample_indices
 
-MEASURED = 0    # source of a merged point: a measured point
-GENERATED = 1   # ... or a generated one: the network's or the mirror image of a measured point
+
+@dataclass(frozen=True)
+class Merged:
+    """A merged completion: its points and, per point, the row of the measured points it copies (-1: a
+    network point or a mirrored one)."""
+
+    points: np.ndarray        # (n, 3) float32, normalised box frame
+    measured_row: np.ndarray  # (n,) int64
+
+    @property
+    def is_measured(self) -> np.ndarray:
+        """Bool (n,): the points that are measured points."""
+        return self.measured_row >= 0
 
 
 def mirrored(points: np.ndarray) -> np.ndarray:
@@ -24,35 +37,41 @@ def mirrored(points: np.ndarray) -> np.ndarray:
     return np.asarray(points, np.float32) * np.array([1.0, -1.0, 1.0], np.float32)
 
 
-def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """(points (n, 3) float32, source (n,) uint8 MEASURED / GENERATED): farthest point sampling of the union
-    of `measured` (M, 3), its mirror image and `completion` (N_o, 3), all in the normalised box frame;
-    `n` defaults to N_o. Pass the measured points the network saw (`preprocess.network_input`, without
-    repeats) to bound the cost: about 2 ms for 512 measured and 2,048 completion points on one core."""
+def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None = None) -> Merged:
+    """Farthest point sampling of the union of `measured` (M, 3), its mirror image and `completion` (N_o, 3),
+    all finite and in the normalised box frame, to `n` points (default N_o). Pass the measured points the
+    network saw (`merge_with_fed`) to bound the cost: about 2 ms for 512 measured and 2,048 completion
+    points on one core. When the union holds fewer than `n` distinct points, all of them are kept and the
+    completion's (else the mirror's) repeated."""
     completion = np.asarray(completion, np.float32).reshape(-1, 3)
     measured = np.asarray(measured, np.float32).reshape(-1, 3)
     n = len(completion) if n is None else int(n)
-    union = np.concatenate([measured, mirrored(measured), completion])
-    if n > len(union):
+    union = np.ascontiguousarray(np.concatenate([measured, mirrored(measured), completion]))
+    if not 0 < n <= len(union):
         raise ValueError(f"cannot keep {n} of {len(union)} points")
-    if n <= 0:
-        return np.zeros((0, 3), np.float32), np.zeros(0, np.uint8)
-    keep = fps_pruned(np.ascontiguousarray(union), n)
-    if len(np.unique(keep)) < n:
-        # every distinct point taken (FPS then repeats index 0): exact repeats in the union, e.g. a sparse
-        # input's cycled control points. All distinct points, then the completion's repeated cyclically.
+    if not np.isfinite(union).all():
+        raise ValueError("merge_measured: non-finite points")
+    keep = fps_pruned(union, n)
+    if n > 1 and (keep[1:] == 0).any():
+        # FPS took every distinct point and went back to point 0: exact repeats in the union (a sparse
+        # input's cycled control points). All distinct points, then the completion's repeated cyclically.
         distinct = np.sort(np.unique(union, axis=0, return_index=True)[1])
-        network = distinct[distinct >= 2 * len(measured)]
-        pool = network if len(network) else distinct
+        for first in (2 * len(measured), len(measured), 0):   # the completion, else the mirror, else all
+            pool = distinct[distinct >= first]
+            if len(pool):
+                break
         keep = np.concatenate([distinct, pool[np.arange(n - len(distinct)) % len(pool)]])
-    return union[keep], np.where(keep < len(measured), MEASURED, GENERATED).astype(np.uint8)
+    return Merged(union[keep], np.where(keep < len(measured), keep, -1))
 
 
-def merge_with_fed(completion: np.ndarray, partial: np.ndarray, num_input: int, fed: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """`merge_measured` with the measured points the network was fed: `fed` = `network_input(partial,
-    num_input)` (computed when None), without the cyclic repeats of a partial smaller than `num_input`."""
+def merge_with_fed(completion: np.ndarray, partial: np.ndarray, num_input: int, rows: np.ndarray | None = None
+                   ) -> Merged:
+    """`merge_measured` with the measured points the network was fed: the rows of `partial` that
+    `preprocess.network_input(partial, num_input)` takes (`rows`, its `resample_indices`, computed when None;
+    all rows of a smaller partial, without its cyclic repeats). `Merged.measured_row` indexes `partial`."""
     partial = np.asarray(partial, np.float32).reshape(-1, 3)
-    fed = network_input(partial, num_input) if fed is None else fed
-    return merge_measured(completion, fed[:min(len(partial), num_input)])
+    if rows is None:
+        rows = resample_indices(len(partial), partial, num_input)
+    rows = np.asarray(rows)[:min(len(partial), num_input)]
+    merged = merge_measured(completion, partial[rows])
+    return Merged(merged.points, np.where(merged.is_measured, rows[np.maximum(merged.measured_row, 0)], -1))

@@ -18,10 +18,10 @@ from gd_completion.errors import DeviceError
 from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask
 from gd_completion.limits import FrameLimits, screen_boxes
-from gd_completion.merge import GENERATED, merge_with_fed
+from gd_completion.merge import merge_with_fed
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
-from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles, network_input
+from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles, resample_indices
 
 LABEL_IDS: dict[str, int] = {"car": 1, "van": 2, "truck": 3}
 DEFAULT_LABELS: tuple[str, ...] = ("car", "van", "truck")
@@ -194,38 +194,43 @@ class VehicleCompleter:
                             ) -> np.ndarray:
         """Complete vehicles given in the normalised box frame, their boxes' sizes (length, width, height)
         beside them (needed by a box-conditioned model); returns (B, num_output, 3) float32 (with
-        `measured_merge`, the merged points of `merge.merge_measured`)."""
+        `measured_merge`, the merged points of `merge.merge_with_fed`)."""
         if not len(partials):
             return np.zeros((0, self.num_output, 3), np.float32)
-        return np.stack([points for points, _ in self._complete_all(partials, sizes, math.inf, None)])
+        return np.stack([points for points, _ in self._complete_all(partials, sizes, self.measured_merge, math.inf,
+                                                                    None)])
 
-    def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None,
+    def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None, merge: bool,
                       deadline: float, cancel: threading.Event | None
                       ) -> list[tuple[np.ndarray, np.ndarray] | None]:
-        """Each vehicle's (completion, source) in order (`_complete_one`); None for those not started before
-        `deadline` (time.monotonic) or after `cancel` was set."""
+        """Each vehicle's (completion, measured rows) in order (`_complete_one`); None for those not started
+        before `deadline` (time.monotonic) or after `cancel` was set."""
         if sizes is not None and len(sizes) != len(partials):
             raise ValueError(f"{len(partials)} partial clouds but {len(sizes)} box sizes")
 
         def one(item: tuple[np.ndarray, Sequence[float] | None]) -> tuple[np.ndarray, np.ndarray] | None:
             if time.monotonic() > deadline or (cancel is not None and cancel.is_set()):
                 return None
-            return self._complete_one(*item)
+            return self._complete_one(*item, merge)
         run = self._pool.map if self._pool is not None else map
         return list(run(one, zip(partials, sizes if sizes is not None else [None] * len(partials))))
 
-    def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None) -> tuple[np.ndarray, np.ndarray]:
-        """Resample one vehicle to the network's input size and complete it (one task of the thread pool):
-        (num_output, 3) float32 points in the normalised frame and their source (uint8, `merge.MEASURED` or
-        `merge.GENERATED`); with `measured_merge` merged with the measured points the network saw."""
-        fed = network_input(partial, self.num_input)
+    def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, merge: bool
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Resample one vehicle to the network's input size (`preprocess.network_input`) and complete it (one
+        task of the thread pool): (num_output, 3) float32 points in the normalised frame and, per point, the
+        row of `partial` it copies (-1: generated); with `merge`, merged with the measured points the network
+        saw (`merge.merge_with_fed`), else all generated."""
+        partial = np.asarray(partial, np.float32).reshape(-1, 3)
+        rows = resample_indices(len(partial), partial, self.num_input)
         shape = box_shape([size]).to(self.device) if size is not None else None
         with torch.inference_mode():   # thread-local: set in the thread that runs the model
-            out = self.model(torch.from_numpy(fed).unsqueeze(0).to(self.device), shape)
+            out = self.model(torch.from_numpy(partial[rows]).unsqueeze(0).to(self.device), shape)
             completion = out.completion[0].float().cpu().numpy()
-        if not self.measured_merge:
-            return completion, np.full(len(completion), GENERATED, np.uint8)
-        return merge_with_fed(completion, partial, self.num_input, fed)
+        if not merge:
+            return completion, np.full(len(completion), -1, np.int64)
+        merged = merge_with_fed(completion, partial, self.num_input, rows)
+        return merged.points, merged.measured_row
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],
                        cancel: threading.Event | None = None, stamp_ns: int | None = None) -> FrameCompletion:
@@ -238,30 +243,37 @@ class VehicleCompleter:
         output points are the fused ones too.
 
         Per vehicle the output holds its measured points (`include_input_points`; generated=0) and its
-        completion's points; with `measured_merge` the completion's measured points (generated=0) are left
-        out where the published measured points already contain them."""
+        completion's points (generated=1). With `measured_merge` the completion holds some of the measured
+        points: those are published once, with generated=0 (left out of the completion when the measured
+        points are published); with track fusion but without `publish_fused_points`, the completion's points
+        from the track's earlier frames count as generated=1. The settings are read once per frame."""
         stats = FrameStats()
         deadline = time.monotonic() + self.limits.time_budget_s
+        include, merge, fused_points = self.include_input_points, self.measured_merge, self.publish_fused_points
         vehicles = self.prepare(points, boxes, stats)
         fusion = self.fusion if stamp_ns is not None else None
         if fusion is not None:
             fusion.expire(stamp_ns)
             vehicles = fusion.update(stamp_ns, vehicles)
-        completions = self._complete_all([v.normalized for v in vehicles], [v.box.size for v in vehicles],
+        completions = self._complete_all([v.normalized for v in vehicles], [v.box.size for v in vehicles], merge,
                                          deadline, cancel)
         done = []
         budget = self.limits.max_output_points
-        published_fed = self.include_input_points and (fusion is None or self.publish_fused_points)
         for vehicle, result in zip(vehicles, completions):
             if result is None:
                 stats.skip(vehicle.box, "cancelled" if cancel is not None and cancel.is_set() else "time_budget")
                 continue
-            completion, source = result
-            if published_fed:   # the measured points published below contain the completion's measured ones
-                completion, source = completion[source == GENERATED], source[source == GENERATED]
-            if not self.include_input_points:
+            completion, row = result
+            # the rows of the partial that are this frame's measured points (all of them but with fusion)
+            own_rows = len(vehicle.normalized) if fused_points or vehicle.current_rows is None \
+                else vehicle.current_rows
+            own = (row >= 0) & (row < own_rows)
+            if include:   # published below with the measured points
+                completion, own = completion[~own], own[~own]
+            source = np.where(own, 0, 1).astype(np.uint8)
+            if not include:
                 measured = np.zeros((0, 3), np.float32)
-            elif fusion is not None and self.publish_fused_points:
+            elif fusion is not None and fused_points:
                 measured = fusion.fused_measured(vehicle)
             else:
                 measured = vehicle.measured

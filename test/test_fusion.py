@@ -212,3 +212,37 @@ def test_pipeline_completes_a_track_from_its_fused_partial() -> None:
     for field in ("points", "instance_id", "label", "generated"):
         assert getattr(a, field).tobytes() == getattr(b, field).tobytes()
     assert fusion.counters["tracks_alive"] == 1
+
+
+@pytest.mark.parametrize("include", [True, False])
+@pytest.mark.parametrize("fused_points", [True, False])
+def test_merged_measured_points_are_published_once(include: bool, fused_points: bool) -> None:
+    """Every setting of include_input_points x publish_fused_points with track fusion and the measured merge:
+    no published point twice, the completion's points all published, generated=0 only for the points measured
+    in this frame (or fused, when those are published)."""
+    from gd_completion.geometry import denormalize
+    from gd_completion.pipeline import FrameStats
+
+    model = load_model(DEFAULT_WEIGHTS)
+    prep = Preprocessing(ground_clearance=0.0)
+    fusion = TrackFusion()
+    completer = VehicleCompleter(model, preprocessing=prep, fusion=fusion, publish_fused_points=fused_points,
+                                 include_input_points=include)
+    twin = TrackFusion()   # fed the same frames: the fused partial the completer saw
+    for k, (points, box) in enumerate(track := moving_track(frames=3, spacing=0.22)):
+        result = completer.complete_frame(points, [box], stamp_ns=k * SECOND // 10)
+        vehicle = twin.update(k * SECOND // 10, completer.prepare(points, [box], FrameStats()))[0]
+    assert len(track) == 3 and len(np.unique(result.points, axis=0)) == len(result.points)
+    # the completion of the last frame, recomputed from the same fused partial (the network is deterministic)
+    completion, rows = completer._complete_one(vehicle.normalized, box.size, True)
+    expected = denormalize(completion, box).astype(np.float32)
+    nearest = np.min(np.linalg.norm(expected[:, None, :] - result.points[None, :, :], axis=-1), axis=1)
+    assert nearest.max() < 1e-4                                 # every completion point is published
+    measured_now = result.points[result.generated == 0]
+    if include:
+        reference = fusion.fused_measured(vehicle) if fused_points else vehicle.measured
+        assert len(measured_now) == len(reference)             # the measured points, each once
+    own = (rows >= 0) & (rows < (len(vehicle.normalized) if fused_points else vehicle.current_rows))
+    assert 0 < own.sum() and (fused_points or (rows >= vehicle.current_rows).any())   # both kinds occur
+    if not include:
+        assert len(result.points) == len(completion) and (result.generated == 0).sum() == own.sum()

@@ -116,5 +116,5 @@ def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
 def merged_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray], completion: np.ndarray) -> np.ndarray:
     """(B, N_o, 3): each completion after the measured merge with the points its partial fed the network, as
     the pipeline publishes it (`merge.merge_with_fed`)."""
-    merged = [merge_with_fed(c, p, model.config.num_input)[0] for p, c in zip(partials, completion)]
+    merged = [merge_with_fed(c, p, model.config.num_input).points for p, c in zip(partials, completion)]
     return np.stack(merged) if merged else np.zeros((0, model.config.num_output, 3), np.float32)

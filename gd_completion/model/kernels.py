@@ -74,15 +74,24 @@ def _morton_order(xyz: np.ndarray) -> np.ndarray:
     return np.argsort(codes, kind="mergesort")
 
 
-@numba.njit(cache=True, nogil=True)
 def fps_pruned(xyz: np.ndarray, n: int, leaf: int = 32) -> np.ndarray:
-    """Indices (n,) int64 of the farthest point sampling of one cloud xyz (M, 3) float32, n <= M: the same
+    """Indices (n,) int64 of the farthest point sampling of one finite cloud xyz (M, 3), 1 <= n <= M: the same
     indices as `fps` (start at point 0, ties to the lowest index, the same float32 distances).
 
     The points are grouped into leaves of `leaf` consecutive points in Morton order; a leaf is rescanned only
-    when the new point lies closer to its bounding box than the leaf's largest current distance (with a 1e-5
-    relative margin, far above float32 rounding), so a skipped leaf is one where no distance could have dropped.
+    when the new point is no farther from its bounding box than the leaf's largest current distance. Skipping
+    the others is exact: float32 rounding is monotone, so a point's computed distance is never below the
+    computed distance to its leaf's box (the 1e-5 shrink of the latter only adds rescans).
     """
+    xyz = np.ascontiguousarray(xyz, dtype=np.float32)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or not 1 <= n <= len(xyz) or leaf < 1:
+        raise ValueError(f"fps_pruned: need (M, 3) points, 1 <= n <= M and leaf >= 1; got {xyz.shape}, n={n}, "
+                         f"leaf={leaf}")
+    return _fps_pruned(xyz, int(n), int(leaf))
+
+
+@numba.njit(cache=True, nogil=True)
+def _fps_pruned(xyz: np.ndarray, n: int, leaf: int) -> np.ndarray:
     m = xyz.shape[0]
     order = _morton_order(xyz)
     leaves = (m + leaf - 1) // leaf

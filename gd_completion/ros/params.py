@@ -95,7 +95,9 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                       _float(0.01, 60.0)),
     "queue_size": (SYNC_QUEUE_SIZE, "Clouds and boxes messages buffered per stream while waiting for their partner.",
                    _int(1, 1000)),
-    "include_input_points": (True, "Also publish the measured points of each completed vehicle (generated=0).", {}),
+    "include_input_points": (True, "Also publish the measured points of each completed vehicle (generated=0); "
+                                   "without them, a merged completion's own measured points still carry "
+                                   "generated=0.", {}),
     "measured_merge": (True, "Thin each completion together with the measured points fed to the network and their "
                              "mirror image (measured points replace network points where they lie densely).", {}),
     # per-frame work limits (gd_completion.limits.FrameLimits); every skip is a counter in /diagnostics
