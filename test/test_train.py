@@ -222,7 +222,11 @@ def test_train_command_from_a_recipe(tmp_path):
     assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "d")]) == 2
     path.write_text("{not json")
     assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "e")]) == 2
-    assert not any((tmp_path / d).exists() for d in "cde")
+    path.write_text(json.dumps({**recipe, "sampling": {"box_noise_prob": 2.0}}))    # invalid options
+    assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "f")]) == 2
+    path.write_text(json.dumps({**recipe, "config": {"no_such_field": 1}}))         # invalid configuration
+    assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "g")]) == 2
+    assert not any((tmp_path / d).exists() for d in "cdefg")
 
 
 def test_cosine_learning_rate_schedule():

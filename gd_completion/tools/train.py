@@ -107,9 +107,12 @@ def apply_recipe(args: argparse.Namespace, recipe_path: Path) -> None:
 
 
 def sampling_options(value: str | dict[str, Any]) -> SampleOptions:
-    """A preset name of SAMPLING_PRESETS or a dict of SampleOptions fields."""
+    """A preset name of SAMPLING_PRESETS or a dict of SampleOptions fields; DataFormatError for anything else."""
     if isinstance(value, dict):
-        return SampleOptions.from_dict(value)
+        try:
+            return SampleOptions.from_dict(value)
+        except (TypeError, ValueError) as exc:
+            raise DataFormatError(f"sampling options: {exc}") from exc
     if value not in SAMPLING_PRESETS:
         raise DataFormatError(f"unknown sampling preset {value!r}; expected one of {sorted(SAMPLING_PRESETS)}")
     return SAMPLING_PRESETS[value]
@@ -170,17 +173,22 @@ def cached_dataset(cache_dir: Path, prefix: str, spec: DatasetSpec, workers: int
 
 
 def load_config(args: argparse.Namespace) -> GGDConfig:
-    """GGDConfig from --config JSON and --num-control (the tree decoder arity follows N_c)."""
+    """GGDConfig from --config JSON (or a recipe's inline dict) and --num-control (the tree decoder arity follows
+    N_c); DataFormatError for a configuration that is not valid JSON or not a valid GGDConfig."""
     from gd_completion.model.config import GGDConfig
 
-    if isinstance(args.config, dict):   # inline in a recipe
-        fields = dict(args.config)
-    else:
-        fields = json.loads(Path(args.config).read_text()) if args.config else {}
-    if args.num_control is not None:
-        fields["num_control"] = args.num_control
-        fields.setdefault("tree_arity", tree_arity_for(GGDConfig().num_output - args.num_control))
-    return GGDConfig.from_dict({**GGDConfig().to_dict(), **fields})
+    try:
+        if isinstance(args.config, dict):   # inline in a recipe
+            fields = dict(args.config)
+        else:
+            fields = json.loads(Path(args.config).read_text()) if args.config else {}
+        if args.num_control is not None:
+            fields["num_control"] = args.num_control
+            fields.setdefault("tree_arity", tree_arity_for(GGDConfig().num_output - args.num_control))
+        return GGDConfig.from_dict({**GGDConfig().to_dict(), **fields})
+    except (TypeError, ValueError) as exc:   # json.JSONDecodeError is a ValueError
+        where = "" if isinstance(args.config, dict) or not args.config else f" {args.config}"
+        raise DataFormatError(f"model configuration{where}: {exc}") from exc
 
 
 def tree_arity_for(n_points: int) -> list[int]:
@@ -206,10 +214,10 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     if args.recipe is not None:
         apply_recipe(args, args.recipe)
-    options = sampling_options(args.sampling)   # a bad preset fails before any folder is made
+    options = sampling_options(args.sampling)   # a bad preset or configuration fails before any folder is made
+    config = load_config(args)
     make_folder(args.output)  # an unwritable output fails before any work
     cache = make_folder(args.cache or args.output)
-    config = load_config(args)
     spec = DatasetSpec(args.samples, args.seed, config.num_input, config.num_output, args.meshes,
                        options=options)
     train_data = cached_dataset(cache, "train", spec, args.workers)
