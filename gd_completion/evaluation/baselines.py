@@ -6,7 +6,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from gd_completion.merge import merge_with_fed
+from gd_completion.merge import merge_with_fed, mirrored
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import network_input
 
@@ -34,8 +34,7 @@ def mirror_symmetry(partial: np.ndarray) -> np.ndarray:
     Works on (N, 3) or (B, N, 3); the output has twice the points, input first.
     """
     partial = np.asarray(partial, dtype=np.float32)
-    mirrored = partial * np.array([1.0, -1.0, 1.0], dtype=np.float32)
-    return np.concatenate([partial, mirrored], axis=-2)
+    return np.concatenate([partial, mirrored(partial)], axis=-2)
 
 
 def _as_batch(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray]) -> tuple[torch.Tensor, bool]:

@@ -299,8 +299,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     for i, (track, k) in enumerate(meta):
         partial, box = track.points[k], track.boxes[k]
         ref_random, ref_voxel, images = refs[track.uuid]
-        outputs = {"input": partial, "mirror": mirror_symmetry(partial), **prior_outputs(partial, box.size, n_out),
-                   "generation": generated[i], "ggd": completion[i], "ggd_merge": merged[i]}
+        outputs = _method_outputs(partial, box.size, n_out, generated[i], completion[i], merged[i])
         item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], len(partial),
                             size_bin(len(partial)), {}, {})
         for name in BASELINE_NAMES:
@@ -315,9 +314,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             item.output_points[name] = len(out)
         if i in noisy_nets:
             noisy_partial, shaken = track.noisy[k]
-            noisy = {"input": noisy_partial, "mirror": mirror_symmetry(noisy_partial),
-                     **prior_outputs(noisy_partial, shaken.size, n_out), "generation": noisy_nets[i][0],
-                     "ggd": noisy_nets[i][1], "ggd_merge": noisy_nets[i][2]}
+            noisy = _method_outputs(noisy_partial, shaken.size, n_out, *noisy_nets[i])
             stacked = reframe(np.concatenate([noisy[n] for n in BASELINE_NAMES]), shaken, box)
             bounds = np.cumsum([0] + [len(noisy[n]) for n in BASELINE_NAMES])
             for j, name in enumerate(BASELINE_NAMES):
@@ -332,6 +329,14 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     worst = _worst(items, meta, merged, refs, n_examples)
     return PandaSetResult(items, len(refs), n_candidates, max_frames_per_vehicle, seconds, examples, notes, worst,
                           sensors, noise, random_points, reference_points)
+
+
+def _method_outputs(partial: np.ndarray, size: Sequence[float], n_out: int, generation: np.ndarray,
+                    completion: np.ndarray, merged: np.ndarray) -> dict[str, np.ndarray]:
+    """Every method's output (`BASELINE_NAMES`) for one normalised partial and its box `size`, given the
+    network's generation-only, completion and merged outputs."""
+    return {"input": partial, "mirror": mirror_symmetry(partial), **prior_outputs(partial, size, n_out),
+            "generation": generation, "ggd": completion, "ggd_merge": merged}
 
 
 def _render_item(item: PandaSetItem, partial: np.ndarray, completion: np.ndarray, reference: np.ndarray,

@@ -159,10 +159,9 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
     sizes = np.asarray(sizes, np.float64).reshape(-1, 3)
     generated, completion = network_outputs(model, partial, sizes, max_batch=max_batch)
     n_out = model.config.num_output
-    outputs = {"input": partial, "mirror": mirror_symmetry(partial), "box_fill": box_fill(sizes, n_out),
-               "template": template_points(sizes, n_out),
-               "mirror_template": np.stack([thinned_union([m, t], n_out) for m, t in
-                                            zip(mirror_symmetry(partial), template_points(sizes, n_out))])
+    mirror, template = mirror_symmetry(partial), template_points(sizes, n_out)
+    outputs = {"input": partial, "mirror": mirror, "box_fill": box_fill(sizes, n_out), "template": template,
+               "mirror_template": np.stack([thinned_union([m, t], n_out) for m, t in zip(mirror, template)])
                if len(partial) else np.zeros((0, n_out, 3), np.float32),
                "generation": generated, "ggd": completion, "ggd_merge": merged_outputs(model, partial, completion)}
     result: dict[str, dict[str, float]] = {}
