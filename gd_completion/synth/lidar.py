@@ -250,6 +250,8 @@ def scan_meshes(meshes: list[Mesh], sensor_position: np.ndarray | tuple[float, f
         if c1 - c0 + 1 < n_az:
             cols = np.unique(np.arange(c0, c1 + 1) % n_az)
     cand = np.arange(n_beams)[:, None] * n_az + cols[None, :]
+    if ground_plane is None and ground_z is not None:   # the level ground: normal +z (the same hits, bit for bit)
+        ground_plane = ((0.0, 0.0, 1.0), float(ground_z))
     if ground_plane is not None:
         n = np.asarray(ground_plane[0], dtype=np.float64).reshape(3)
         n = n / np.linalg.norm(n)
@@ -262,15 +264,6 @@ def scan_meshes(meshes: list[Mesh], sensor_position: np.ndarray | tuple[float, f
             g = tg_c < best[cand]
             best[cand[g]] = tg_c[g]
             best_src[cand[g]] = -2
-    elif ground_z is not None and sensor[2] > ground_z:
-        down = sin_e < -1e-9
-        tg = np.full(n_beams, np.inf)
-        tg[down] = (ground_z - sensor[2]) / sin_e[down]
-        tg = np.where(tg <= max_range, tg, np.inf)
-        tg_c = np.broadcast_to(tg[:, None], cand.shape)
-        g = tg_c < best[cand]
-        best[cand[g]] = tg_c[g]
-        best_src[cand[g]] = -2
     cand = cand.reshape(-1)
     rays = cand[np.isfinite(best[cand])]  # ascending: cols are sorted
     beam, j = rays // n_az, rays % n_az
