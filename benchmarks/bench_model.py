@@ -174,7 +174,7 @@ def main() -> None:
     torch.manual_seed(0)
     if args.untrained:
         fields = json.loads(Path(args.config).read_text()) if args.config else {}
-        model = GGDNet(GGDConfig.from_dict({**GGDConfig().to_dict(), **fields})).eval()
+        model = GGDNet(GGDConfig.from_dict(fields)).eval()
     else:
         model = load_model(args.model or DEFAULT_WEIGHTS)
     cfg = model.config

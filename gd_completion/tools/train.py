@@ -185,7 +185,7 @@ def load_config(args: argparse.Namespace) -> GGDConfig:
         if args.num_control is not None:
             fields["num_control"] = args.num_control
             fields.setdefault("tree_arity", tree_arity_for(GGDConfig().num_output - args.num_control))
-        return GGDConfig.from_dict({**GGDConfig().to_dict(), **fields})
+        return GGDConfig.from_dict(fields)
     except (TypeError, ValueError) as exc:   # json.JSONDecodeError is a ValueError
         where = "" if isinstance(args.config, dict) or not args.config else f" {args.config}"
         raise DataFormatError(f"model configuration{where}: {exc}") from exc
