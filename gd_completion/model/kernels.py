@@ -12,7 +12,9 @@ computed on its own (batch independent); the kernels release the GIL, so threads
 The k nearest candidates are found by scanning the x-sorted ref points outwards from the query's x
 (left, then right) and stopping once dx*dx exceeds the current k-th distance: the full distance is
 never smaller than dx*dx in float32, so the pruned scan selects the same k smallest entries as a scan
-of the whole window.
+of the whole window. With a grid `cell` (the kNN graph), a uniform-grid search first finds the exact k
+nearest of each query by rings of cells; where all of them lie within `margin` they are the window's too
+(the window holds every point within `margin` in x of the query), and only the other queries are scanned.
 """
 from __future__ import annotations
 
@@ -171,7 +173,7 @@ def _sq(a: np.ndarray, i: int, b: np.ndarray, j: int) -> np.float32:
 
 @numba.njit(cache=True, nogil=True)
 def _knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, block: int, windowed: bool,
-               exclude_self: bool, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
+               exclude_self: bool, done: np.ndarray, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
     q = query.shape[0]
     n = ref.shape[0]
     rperm = np.argsort(ref[:, 0], kind="mergesort")
@@ -184,6 +186,8 @@ def _knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, b
     pos = np.empty(k, np.int64)
     for rank in range(q):
         qi = qperm[rank]
+        if done[qi]:
+            continue
         qx = query[qi, 0]
         lo, hi = 0, n
         if windowed:
@@ -221,18 +225,110 @@ def _knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, b
 
 
 @numba.njit(cache=True, nogil=True)
+def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, cell: float, exclude_self: bool,
+                    done: np.ndarray, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
+    """The exact k nearest ref points of each query by a uniform-grid ring search; sets done[qi] (and the outputs)
+    only where all k lie within `margin` (the window search's result then, up to the order of exact ties)."""
+    q, n = query.shape[0], ref.shape[0]
+    if q == 0 or n == 0:
+        return
+    lo = np.empty(3, np.float64)
+    hi = np.empty(3, np.float64)
+    dims = np.empty(3, np.int64)
+    for a in range(3):
+        lo[a] = min(query[:, a].min(), ref[:, a].min())
+        hi[a] = max(query[:, a].max(), ref[:, a].max())
+    c = max(np.float64(cell), 1e-9)
+    while True:   # coarser cells where the cloud is spread out: at most ~4 cells per point
+        cells = 1
+        for a in range(3):
+            dims[a] = int((hi[a] - lo[a]) / c) + 1
+            cells *= dims[a]
+        if cells <= 4 * (n + q) + 64:
+            break
+        c *= 1.5
+    cell_of = np.empty(n, np.int64)
+    start = np.zeros(cells + 1, np.int64)
+    for j in range(n):   # counting sort of the ref points by cell
+        ix = min(int((ref[j, 0] - lo[0]) / c), dims[0] - 1)
+        iy = min(int((ref[j, 1] - lo[1]) / c), dims[1] - 1)
+        iz = min(int((ref[j, 2] - lo[2]) / c), dims[2] - 1)
+        cell_of[j] = (ix * dims[1] + iy) * dims[2] + iz
+        start[cell_of[j] + 1] += 1
+    for i in range(cells):
+        start[i + 1] += start[i]
+    fill = start[:-1].copy()
+    rs = np.empty((n, 3), np.float32)
+    ridx = np.empty(n, np.int64)
+    for j in range(n):
+        p = fill[cell_of[j]]
+        fill[cell_of[j]] += 1
+        rs[p] = ref[j]
+        ridx[p] = j
+    within = margin * margin * np.float32(1.0 - 1e-5)   # all k inside the window, with room for rounding
+    shrink = 1.0 - 1e-5
+    dist = np.empty(k, np.float32)
+    pos = np.empty(k, np.int64)
+    qc = np.empty(3, np.int64)
+    for qi in range(q):
+        for a in range(3):
+            qc[a] = min(max(int((query[qi, a] - lo[a]) / c), 0), dims[a] - 1)
+        count = 0
+        r = 0
+        while True:
+            for ix in range(max(qc[0] - r, 0), min(qc[0] + r, dims[0] - 1) + 1):   # the shell of ring r
+                on_x = abs(ix - qc[0]) == r
+                for iy in range(max(qc[1] - r, 0), min(qc[1] + r, dims[1] - 1) + 1):
+                    on_xy = on_x or abs(iy - qc[1]) == r
+                    for iz in range(max(qc[2] - r, 0), min(qc[2] + r, dims[2] - 1) + 1):
+                        if not (on_xy or abs(iz - qc[2]) == r):
+                            continue
+                        cc = (ix * dims[1] + iy) * dims[2] + iz
+                        for p in range(start[cc], start[cc + 1]):
+                            j = ridx[p]
+                            if exclude_self and j == qi:
+                                continue
+                            d = _sq(query, qi, rs, p)
+                            if count < k or d < dist[k - 1]:
+                                count = _insert(dist, pos, count, k, d, j)
+            # every point outside the searched cells is at least `bound` away (inf: the whole grid searched)
+            bound = np.inf
+            for a in range(3):
+                if qc[a] - r > 0:
+                    bound = min(bound, query[qi, a] - (lo[a] + (qc[a] - r) * c))
+                if qc[a] + r < dims[a] - 1:
+                    bound = min(bound, lo[a] + (qc[a] + r + 1) * c - query[qi, a])
+            reach = bound * bound * shrink
+            if count == k and dist[k - 1] <= reach:
+                if dist[k - 1] <= within:
+                    done[qi] = True
+                    for s in range(k):
+                        out_dist[qi, s] = dist[s]
+                        out_idx[qi, s] = pos[s]
+                break
+            if reach >= within:   # the k-th nearest is beyond the margin: the window search decides
+                break
+            r += 1
+
+
+@numba.njit(cache=True, nogil=True)
 def knn(query: np.ndarray, ref: np.ndarray, k: int, margin: float, block: int, windowed: bool,
-        exclude_self: bool) -> tuple[np.ndarray, np.ndarray]:
+        exclude_self: bool, cell: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(squared distances, indices), each (B, Q, k), of the k nearest ref points of every query, ascending.
 
     `windowed`: only ref points whose x lies within `margin` of the x-range of the query's block of
     `block` x-sorted queries; else every ref point. `exclude_self` (query is ref): the point itself is
     skipped. Slots without a candidate hold distance inf and the ref point at the window's start.
+    `cell` > 0 (windowed only): a grid search with cells of that size first (faster for dense clouds such
+    as the kNN graph over P_g; the same result up to the order of exact ties).
     """
     b, q = query.shape[0], query.shape[1]
     out_dist = np.empty((b, q, k), np.float32)
     out_idx = np.empty((b, q, k), np.int64)
     m32 = np.float32(margin)
     for c in range(b):
-        _knn_cloud(query[c], ref[c], k, m32, block, windowed, exclude_self, out_dist[c], out_idx[c])
+        done = np.zeros(q, np.bool_)
+        if windowed and cell > 0 and k > 0:
+            _grid_knn_cloud(query[c], ref[c], k, m32, cell, exclude_self, done, out_dist[c], out_idx[c])
+        _knn_cloud(query[c], ref[c], k, m32, block, windowed, exclude_self, done, out_dist[c], out_idx[c])
     return out_dist, out_idx
