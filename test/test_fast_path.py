@@ -64,6 +64,21 @@ def test_kernels_match_torch_searches(scans):
             _same_up_to_exact_ties(query, ref, fast, _nearest_k(query, ref, 8, None, 0, exclude_self))
 
 
+def test_grid_search_of_the_knn_graph_matches_the_window_search(scans):
+    x = torch.from_numpy(scans["partial"][:8])
+    g = torch.Generator().manual_seed(2)
+    noisy = torch.cat([x, x + 0.01 * torch.randn(x.shape, generator=g)], 1)
+    spread = noisy * torch.tensor([40.0, 1.0, 1.0])          # a stretched cloud: the grid coarsens its cells
+    repeated = torch.cat([x, x[:, :256]], 1)                   # exact duplicates: ties everywhere
+    sparse = noisy[:, ::8] * 3.0                               # many k-th neighbours beyond the margin
+    for points in (noisy, spread, repeated, sparse):
+        for k in (1, 6, 8):
+            grid = window_knn(points, points, k, 0.08, block=32, exclude_self=True, grid=True)
+            with torch_kernels():
+                _same_up_to_exact_ties(points, points, grid,
+                                       window_knn(points, points, k, 0.08, block=32, exclude_self=True))
+
+
 def test_kernel_window_edge_cases():
     # fewer candidates in the window than k: distance inf and the ref point at the window's start, in both paths
     ref = torch.tensor([[[0.0, 0, 0], [0.01, 0, 0]] + [[5.0 + i, 0, 0] for i in range(200)]])
