@@ -14,4 +14,12 @@ py=.venv/bin/python
   echo "## offline tools (bench_tools.py --complete-frames 10)"; $py benchmarks/bench_tools.py --complete-frames 10 || echo "!! bench_tools.py failed"
   echo "## hesai (bench_hesai.py)"; $py benchmarks/bench_hesai.py || echo "!! bench_hesai.py failed"
   echo "## synthetic data (bench_synth.py)"; $py benchmarks/bench_synth.py || echo "!! bench_synth.py failed"
+  echo
+  echo "# Node with and without the measured merge, alternating (bench_node.py [--no-measured-merge]), same commit"
+  for round in 1 2; do
+    echo "## node, 20 vehicles, measured merge on (bench_node.py), round $round"
+    $py benchmarks/bench_node.py || echo "!! bench_node.py failed"
+    echo "## node, 20 vehicles, measured merge off (bench_node.py --no-measured-merge), round $round"
+    $py benchmarks/bench_node.py --no-measured-merge || echo "!! bench_node.py failed"
+  done
 } 2>&1 | tee "$out"
