@@ -4,7 +4,10 @@ A vehicle's points are kept per frame in metres in the box frame of that frame's
 rotated by -yaw, not divided by the length), so a later box of a slightly different length does not
 rescale old points. `TrackFusion.update` returns each vehicle with the track's fused partial in the
 current box's normalised frame (divided by the current length, as `geometry.normalize` does): the
-network sees every side the track has shown so far.
+network sees every side the track has shown so far. The partial lists the oldest frame first, so the
+farthest point sampling of the network input (and of the measured merge) starts at the same point from
+frame to frame, which keeps consecutive completions alike (measured: docs/evaluation/report.md, "track
+fusion"); the most recent frames count through the bounds, which drop the oldest frames first.
 
 Bounds: every frame is voxel-downsampled (one point per `voxel_size` voxel and frame; the pipeline
 resamples the network input to its fixed size anyway, so this only bounds memory and the resampling
@@ -85,8 +88,8 @@ class _Track:
             self.points -= len(self.frames.popleft())
 
     def fused_normalized(self) -> np.ndarray:
-        """(P, 3) float32: every frame's points, most recent frame first, divided by the current length."""
-        metres = np.concatenate(list(reversed(self.frames))) if self.frames else np.zeros((0, 3), np.float32)
+        """(P, 3) float32: every frame's points, oldest frame first, divided by the current length."""
+        metres = np.concatenate(list(self.frames)) if self.frames else np.zeros((0, 3), np.float32)
         return (metres.astype(np.float64) / self.box.size[0]).astype(np.float32)
 
 
@@ -113,8 +116,8 @@ class TrackFusion:
 
     def update(self, stamp_ns: int, vehicles: Sequence[CroppedVehicle]) -> list[CroppedVehicle]:
         """Add each vehicle (keyed by `box.instance_id`) to its track; return, in the same order, the vehicles
-        with `normalized` the track's fused partial in the current box's normalised frame (most recent frame
-        first, its `current_rows` rows). `measured` and `box` stay the current frame's."""
+        with `normalized` the track's fused partial in the current box's normalised frame (oldest frame first;
+        the current frame last, its `current_rows` rows). `measured` and `box` stay the current frame's."""
         stamp_ns = int(stamp_ns)
         with self._lock:
             self._restart_if_time_went_back(stamp_ns)

@@ -264,10 +264,10 @@ class VehicleCompleter:
                 stats.skip(vehicle.box, "cancelled" if cancel is not None and cancel.is_set() else "time_budget")
                 continue
             completion, row = result
-            # the rows of the partial that are this frame's measured points (all of them but with fusion)
-            own_rows = len(vehicle.normalized) if fused_points or vehicle.current_rows is None \
-                else vehicle.current_rows
-            own = (row >= 0) & (row < own_rows)
+            # the rows of the partial that are this frame's measured points (all of them but with fusion: its last)
+            own_from = 0 if fused_points or vehicle.current_rows is None \
+                else len(vehicle.normalized) - vehicle.current_rows
+            own = row >= own_from
             if include:   # published below with the measured points
                 completion, own = completion[~own], own[~own]
             source = np.where(own, 0, 1).astype(np.uint8)

@@ -59,7 +59,7 @@ class CroppedVehicle:
     box: Box3D
     measured: np.ndarray    # (M, 3) float32, cloud frame
     normalized: np.ndarray  # (M, 3) float32, box frame divided by the length
-    current_rows: int | None = None   # track fusion: `normalized` is the fused partial, its first rows this frame's
+    current_rows: int | None = None   # track fusion: `normalized` is the fused partial, its last rows this frame's
 
 
 def above_ground(normalized: np.ndarray, box: Box3D, ground_clearance: float) -> np.ndarray:

@@ -87,7 +87,7 @@ def test_moving_vehicle_fuses_every_side() -> None:
         singles.append(vehicles[0].normalized)
         (fused,) = fusion.update(k * SECOND // 10, vehicles)
         assert fused.box is box and fused.measured is vehicles[0].measured
-        expected = np.concatenate(singles[::-1])          # union of every frame, most recent first
+        expected = np.concatenate(singles)                # union of every frame, oldest first
         np.testing.assert_allclose(fused.normalized, expected, rtol=0, atol=1e-6)
         assert fused.normalized.dtype == np.float32
     sides = set(side_of(fused.normalized * SIZE[0]))
@@ -118,7 +118,8 @@ def test_points_bound_drops_oldest_frames() -> None:
     frames = [distinct(30, start=2.0 * k) for k in range(5)]
     for k, pts in enumerate(frames):
         (fused,) = fusion.update(k, [vehicle(1, pts)])
-    np.testing.assert_allclose(fused.normalized * SIZE[0], np.concatenate(frames[:-4:-1]), atol=1e-6)
+    # the last 3 frames, oldest first
+    np.testing.assert_allclose(fused.normalized * SIZE[0], np.concatenate(frames[-3:]), atol=1e-6)
     # One frame alone over the bound is thinned evenly to it.
     (fused,) = fusion.update(10, [vehicle(2, distinct(250))])
     assert len(fused.normalized) == 100
@@ -131,7 +132,8 @@ def test_frames_bound_drops_oldest_frames() -> None:
     for k, pts in enumerate(frames):
         (fused,) = fusion.update(k, [vehicle(1, pts)])
         assert len(fused.normalized) == 4 * min(k + 1, 3)
-    np.testing.assert_allclose(fused.normalized * SIZE[0], np.concatenate(frames[:-4:-1]), atol=1e-6)
+    # the last 3 frames, oldest first
+    np.testing.assert_allclose(fused.normalized * SIZE[0], np.concatenate(frames[-3:]), atol=1e-6)
 
 
 def test_tracks_bound_evicts_least_recently_seen() -> None:
@@ -169,7 +171,7 @@ def test_size_jump_resets_track_small_change_keeps_metres() -> None:
     bigger = (SIZE[0] * 1.1, SIZE[1], SIZE[2])               # 10 %: the same vehicle, a refined box
     new = distinct(2, 1.0)
     (fused,) = fusion.update(1, [vehicle(1, new, bigger)])
-    np.testing.assert_allclose(fused.normalized, np.concatenate([new, old]) / bigger[0], atol=1e-6)
+    np.testing.assert_allclose(fused.normalized, np.concatenate([old, new]) / bigger[0], atol=1e-6)
     assert fusion.counters["tracks_reset"] == 0
     other = (bigger[0], bigger[1], bigger[2] * 1.3)          # 30 % taller: another object with the same id
     (fused,) = fusion.update(2, [vehicle(1, distinct(4, 2.0), other)])
@@ -242,7 +244,8 @@ def test_merged_measured_points_are_published_once(include: bool, fused_points: 
     if include:
         reference = fusion.fused_measured(vehicle) if fused_points else vehicle.measured
         assert len(measured_now) == len(reference)             # the measured points, each once
-    own = (rows >= 0) & (rows < (len(vehicle.normalized) if fused_points else vehicle.current_rows))
-    assert 0 < own.sum() and (fused_points or (rows >= vehicle.current_rows).any())   # both kinds occur
+    own_from = 0 if fused_points else len(vehicle.normalized) - vehicle.current_rows   # this frame's: the last rows
+    own = rows >= own_from
+    assert 0 < own.sum() and (fused_points or ((rows >= 0) & (rows < own_from)).any())   # both kinds occur
     if not include:
         assert len(result.points) == len(completion) and (result.generated == 0).sum() == own.sum()
