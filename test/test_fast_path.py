@@ -77,6 +77,17 @@ def test_grid_search_of_the_knn_graph_matches_the_window_search(scans):
             with torch_kernels():
                 _same_up_to_exact_ties(points, points, grid,
                                        window_knn(points, points, k, 0.08, block=32, exclude_self=True))
+    # a non-finite point has no grid cell: the window search answers, indices stay in range
+    broken = noisy[:1].clone()
+    broken[0, 5] = float("nan")
+    broken[0, 9] = float("inf")
+    idx = window_knn(broken, broken, 6, 0.08, block=32, exclude_self=True, grid=True)[1]
+    assert idx.shape == (1, broken.shape[1], 6) and 0 <= int(idx.min()) and int(idx.max()) < broken.shape[1]
+    far = noisy[:1].clone()
+    far[0, 0] = 1e30                                           # one absurd point: coarse cells, no overflow
+    grid = window_knn(far, far, 6, 0.08, block=32, exclude_self=True, grid=True)
+    with torch_kernels():
+        _same_up_to_exact_ties(far, far, grid, window_knn(far, far, 6, 0.08, block=32, exclude_self=True))
 
 
 def test_kernel_window_edge_cases():

@@ -230,8 +230,8 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
     """The exact k nearest ref points of each query by a uniform-grid ring search; sets done[qi] (and the outputs)
     only where all k lie within `margin` (the window search's result then, up to the order of exact ties)."""
     q, n = query.shape[0], ref.shape[0]
-    if q == 0 or n == 0:
-        return
+    if q == 0 or n == 0 or not (np.isfinite(query).all() and np.isfinite(ref).all()):
+        return   # nothing to grid (a non-finite point has no cell): the window search answers every query
     lo = np.empty(3, np.float64)
     hi = np.empty(3, np.float64)
     dims = np.empty(3, np.int64)
@@ -239,14 +239,17 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
         lo[a] = min(query[:, a].min(), ref[:, a].min())
         hi[a] = max(query[:, a].max(), ref[:, a].max())
     c = max(np.float64(cell), 1e-9)
-    while True:   # coarser cells where the cloud is spread out: at most ~4 cells per point
-        cells = 1
+    while True:   # coarser cells where the cloud is spread out: at most ~4 cells per point (counted in float)
+        estimate = 1.0
         for a in range(3):
-            dims[a] = int((hi[a] - lo[a]) / c) + 1
-            cells *= dims[a]
-        if cells <= 4 * (n + q) + 64:
+            estimate *= (hi[a] - lo[a]) / c + 1.0
+        if estimate <= 4 * (n + q) + 64:
             break
         c *= 1.5
+    cells = 1
+    for a in range(3):
+        dims[a] = int((hi[a] - lo[a]) / c) + 1
+        cells *= dims[a]
     cell_of = np.empty(n, np.int64)
     start = np.zeros(cells + 1, np.int64)
     for j in range(n):   # counting sort of the ref points by cell
