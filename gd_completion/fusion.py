@@ -6,8 +6,9 @@ rescale old points. `TrackFusion.update` returns each vehicle with the track's f
 current box's normalised frame (divided by the current length, as `geometry.normalize` does): the
 network sees every side the track has shown so far. The partial lists the oldest frame first, so the
 farthest point sampling of the network input (and of the measured merge) starts at the same point from
-frame to frame, which keeps consecutive completions alike (measured: docs/evaluation/report.md, "track
-fusion"); the most recent frames count through the bounds, which drop the oldest frames first.
+frame to frame (until the bounds drop the oldest frame), which keeps consecutive completions alike
+(measured: docs/evaluation/report.md, "track fusion"); the most recent frames count through the bounds,
+which drop the oldest frames first.
 
 Bounds: every frame is voxel-downsampled (one point per `voxel_size` voxel and frame; the pipeline
 resamples the network input to its fixed size anyway, so this only bounds memory and the resampling

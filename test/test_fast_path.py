@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from gd_completion.evaluation.baselines import merged_outputs
-from gd_completion.model import chamfer_l2, farthest_point_sample
+from gd_completion.model import chamfer_l2, farthest_point_sample, kernels
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import box_shape
 from gd_completion.model.ops import _nearest_k, knn_graph, torch_kernels, window_knn
@@ -83,6 +83,11 @@ def test_grid_search_of_the_knn_graph_matches_the_window_search(scans):
     broken[0, 9] = float("inf")
     idx = window_knn(broken, broken, 6, 0.08, block=32, exclude_self=True, grid=True)[1]
     assert idx.shape == (1, broken.shape[1], 6) and 0 <= int(idx.min()) and int(idx.max()) < broken.shape[1]
+    # queries a rounding error from a cell border (their cell and the border are computed apart)
+    border = np.zeros((1, 4, 3), np.float32)                   # (tiny: window_knn would search it whole)
+    border[0, :, 0] = [-1.0, -5e-17, -5.6e-17, -4e-17]
+    on_grid = kernels.knn(border, border, 1, 4 / 3, 32, True, True, 1.0)
+    np.testing.assert_array_equal(on_grid[0], kernels.knn(border, border, 1, 4 / 3, 32, True, True, 0.0)[0])
     far = noisy[:1].clone()
     far[0, 0] = 1e30                                           # one absurd point: coarse cells, no overflow
     grid = window_knn(far, far, 6, 0.08, block=32, exclude_self=True, grid=True)

@@ -18,7 +18,7 @@ def _pts(*rows):
 
 
 class ConcatFusion:
-    """Test double of TrackFusion: every frame of a track so far, newest first (boxes of parked cars agree)."""
+    """Test double of TrackFusion: every frame of a track so far, oldest first (boxes of parked cars agree)."""
 
     def __init__(self):
         self.history = {}
@@ -27,7 +27,7 @@ class ConcatFusion:
         out = []
         for v in vehicles:
             frames = self.history.setdefault(v.box.instance_id, [])
-            frames.insert(0, v.normalized)
+            frames.append(v.normalized)
             out.append(replace(v, normalized=np.concatenate(frames)))
         return out
 

@@ -258,8 +258,12 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
         iz = min(int((ref[j, 2] - lo[2]) / c), dims[2] - 1)
         cell_of[j] = (ix * dims[1] + iy) * dims[2] + iz
         start[cell_of[j] + 1] += 1
+    pairs = 0   # point pairs sharing a cell: the grid's work grows with it
     for i in range(cells):
+        pairs += start[i + 1] * start[i + 1]
         start[i + 1] += start[i]
+    if pairs > 64 * (n + q):
+        return   # a far outlier packed the cloud into a few cells: the window search is cheaper
     fill = start[:-1].copy()
     rs = np.empty((n, 3), np.float32)
     ridx = np.empty(n, np.int64)
@@ -270,6 +274,9 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
         ridx[p] = j
     within = margin * margin * np.float32(1.0 - 1e-5)   # all k inside the window, with room for rounding
     shrink = 1.0 - 1e-5
+    # absolute float64 error of a query's distance to a cell border (its cell index and the border are
+    # computed separately): the bound is lowered by it, so a point a rounding error inside a border is safe
+    slack = 8.0 * np.finfo(np.float64).eps * (max(np.abs(lo).max(), np.abs(hi).max()) + c)
     dist = np.empty(k, np.float32)
     pos = np.empty(k, np.int64)
     qc = np.empty(3, np.int64)
@@ -301,6 +308,7 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
                     bound = min(bound, query[qi, a] - (lo[a] + (qc[a] - r) * c))
                 if qc[a] + r < dims[a] - 1:
                     bound = min(bound, lo[a] + (qc[a] + r + 1) * c - query[qi, a])
+            bound = max(bound - slack, 0.0)
             reach = bound * bound * shrink
             if count == k and dist[k - 1] <= reach:
                 if dist[k - 1] <= within:
