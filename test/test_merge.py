@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from gd_completion.merge import merge_measured, merge_with_fed, mirrored
-from gd_completion.model.kernels import _fps_cloud, fps_pruned
+from gd_completion.model.kernels import _fps_cloud, fps, fps_pruned
 from gd_completion.preprocess import network_input
 
 
@@ -39,6 +39,16 @@ def test_pruned_fps_ties_repeats_and_degenerate_clouds_match_the_plain_scan():
     assert np.array_equal(fps_pruned(same, 50), _plain_fps(same, 50))
     flat = np.stack([rng.random(400), np.zeros(400), np.zeros(400)], 1).astype(np.float32)
     assert np.array_equal(fps_pruned(flat, 400, 7), _plain_fps(flat, 400))
+
+
+def test_batched_fps_prunes_finite_clouds_and_scans_broken_ones_plainly():
+    rng = np.random.default_rng(5)
+    clouds = (rng.random((3, 900, 3)) * np.array([1.0, 0.4, 0.35])).astype(np.float32)
+    clouds[1, 17] = np.nan                                         # no Morton code: the plain scan answers
+    clouds[2, :450] = clouds[2, 450:]                              # every point twice
+    picks = fps(clouds, 600)
+    for cloud, got in zip(clouds, picks):
+        assert np.array_equal(got, _plain_fps(cloud, 600))
 
 
 @pytest.mark.parametrize(("shape", "n", "leaf"), [((10, 3), 0, 32), ((10, 3), 11, 32), ((0, 3), 1, 32),
