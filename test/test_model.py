@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from gd_completion.errors import CheckpointError
 from gd_completion.model import (
@@ -19,6 +20,7 @@ from gd_completion.model import (
     save_checkpoint,
 )
 from gd_completion.model.losses import ggd_loss, laplacian_coordinates, laplacian_loss, smooth_l1
+from gd_completion.model.network import LinearBN
 from gd_completion.model.ops import ball_group, knn_graph, smallest_k, window_knn
 
 TINY = GGDConfig(num_input=64, num_output=96, num_control=32, encoder_h0=(16, 32), encoder_h1=(32,),
@@ -327,3 +329,31 @@ def test_mirrored_local_features_reach_the_unseen_side():
     mirrored.load_state_dict(plain.state_dict())
     with torch.inference_mode():
         assert not torch.equal(mirrored(opposite, seen, order), plain(opposite, seen, order))
+
+
+def test_eval_linear_bn_folds_the_current_parameters():
+    layer = LinearBN(5, 7)
+    torch.nn.init.normal_(layer.bn.running_mean)
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(40, 5, generator=g)
+
+    def unfolded() -> torch.Tensor:
+        return torch.relu(F.batch_norm(layer.linear(x), layer.bn.running_mean, layer.bn.running_var,
+                                       layer.bn.weight, layer.bn.bias, False, 0.0, layer.bn.eps))
+
+    layer.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(layer(x), unfolded())
+        with torch.inference_mode():
+            first = layer(x)
+        torch.testing.assert_close(first, unfolded())
+        layer.load_state_dict({k: v + 0.5 for k, v in layer.state_dict().items()})   # in-place copies
+        torch.testing.assert_close(layer(x), unfolded())
+        assert not torch.allclose(layer(x), first)
+    layer.train()   # a training step moves the running statistics; eval folds the new ones
+    layer(x + 3.0)
+    layer.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(layer(x), unfolded())
+    y = layer(x)    # eval mode with autograd: the cached weights are plain tensors
+    y.sum().backward()

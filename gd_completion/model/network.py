@@ -32,22 +32,37 @@ class GGDOutput(NamedTuple):
 
 
 class LinearBN(nn.Module):
-    """Point-wise Linear + BatchNorm + ReLU on (..., C); in eval mode BN is folded into the Linear."""
+    """Point-wise Linear + BatchNorm + ReLU on (..., C); in eval mode BN is folded into the Linear (the folded
+    weights are cached until a training-mode forward or an in-place change of a parameter or buffer: the same
+    values as folding every call)."""
 
     def __init__(self, cin: int, cout: int, relu: bool = True) -> None:
         super().__init__()
         self.linear = nn.Linear(cin, cout, bias=False)
         self.bn = nn.BatchNorm1d(cout)
         self.relu = relu
+        self._fold: tuple[tuple, Tensor, Tensor] | None = None   # (key, bias, weight^T): one attribute, thread-safe
+
+    def _folded(self) -> tuple[Tensor, Tensor]:
+        sources = (self.linear.weight, self.bn.weight, self.bn.bias, self.bn.running_mean, self.bn.running_var)
+        key = tuple((t.data_ptr(), t._version, t.dtype, t.device) for t in sources)
+        fold = self._fold
+        if fold is None or fold[0] != key:
+            with torch.no_grad(), torch.inference_mode(False):   # plain tensors: usable in and out of inference mode
+                scale = self.bn.weight * torch.rsqrt(self.bn.running_var + self.bn.eps)
+                fold = (key, self.bn.bias - self.bn.running_mean * scale, (self.linear.weight * scale[:, None]).t())
+            self._fold = fold
+        return fold[1], fold[2]
 
     def forward(self, x: Tensor) -> Tensor:
         shape = x.shape
         x2 = x.reshape(-1, shape[-1])
-        if self.training:
+        if self.training:   # moves the running statistics (in place, without a version bump): refold in eval
+            self._fold = None
             y = self.bn(self.linear(x2))
         else:
-            scale = self.bn.weight * torch.rsqrt(self.bn.running_var + self.bn.eps)
-            y = torch.addmm(self.bn.bias - self.bn.running_mean * scale, x2, (self.linear.weight * scale[:, None]).t())
+            bias, weight_t = self._folded()
+            y = torch.addmm(bias, x2, weight_t)
         if self.relu:
             y = torch.relu_(y)
         return y.view(shape[:-1] + (-1,))
