@@ -16,7 +16,7 @@ py=.venv/bin/python
   echo "## synthetic data (bench_synth.py)"; $py benchmarks/bench_synth.py || echo "!! bench_synth.py failed"
   echo
   echo "# Node with and without the measured merge, alternating (bench_node.py [--no-measured-merge]), same commit"
-  for round in 1 2; do
+  for round in 1 2 3; do
     echo "## node, 20 vehicles, measured merge on (bench_node.py), round $round"
     $py benchmarks/bench_node.py || echo "!! bench_node.py failed"
     echo "## node, 20 vehicles, measured merge off (bench_node.py --no-measured-merge), round $round"
