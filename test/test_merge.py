@@ -51,6 +51,20 @@ def test_batched_fps_prunes_finite_clouds_and_scans_broken_ones_plainly():
         assert np.array_equal(got, _plain_fps(cloud, 600))
 
 
+def test_pruned_fps_matches_the_plain_scan_on_overflowed_distances_and_leaf_edges():
+    rng = np.random.default_rng(9)
+    huge = (rng.random((200, 3)) - 0.5).astype(np.float32) * np.float32(1e20)   # squared distances overflow to inf
+    two = np.array([[1e20, 0, 0], [-1e20, 0, 0]], np.float32)
+    for cloud in (huge, two):
+        for n in (1, 2, len(cloud)):
+            assert np.array_equal(fps_pruned(cloud, n), _plain_fps(cloud, n))
+        assert np.array_equal(fps(cloud[None], len(cloud))[0], _plain_fps(cloud, len(cloud)))
+    for m in (1, 31, 32, 33):                       # a leaf of 32: one point, one short of full, full, one over
+        cloud = (rng.random((m, 3))).astype(np.float32)
+        for n in sorted({1, m}):
+            assert np.array_equal(fps_pruned(cloud, n), _plain_fps(cloud, n))
+
+
 @pytest.mark.parametrize(("shape", "n", "leaf"), [((10, 3), 0, 32), ((10, 3), 11, 32), ((0, 3), 1, 32),
                                                   ((10, 2), 5, 32), ((10, 3), 5, 0)])
 def test_pruned_fps_refuses_bad_arguments(shape, n, leaf):

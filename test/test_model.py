@@ -1,6 +1,7 @@
 """GGD-Net model tests: ops, shapes, gradients, losses on hand-computed values, checkpoints."""
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -338,22 +339,33 @@ def test_eval_linear_bn_folds_the_current_parameters():
     x = torch.randn(40, 5, generator=g)
 
     def unfolded() -> torch.Tensor:
-        return torch.relu(F.batch_norm(layer.linear(x), layer.bn.running_mean, layer.bn.running_var,
-                                       layer.bn.weight, layer.bn.bias, False, 0.0, layer.bn.eps))
+        with torch.no_grad():
+            return torch.relu(F.batch_norm(layer.linear(x), layer.bn.running_mean, layer.bn.running_var,
+                                           layer.bn.weight, layer.bn.bias, False, 0.0, layer.bn.eps))
+
+    def inferred() -> torch.Tensor:
+        with torch.inference_mode():
+            out = layer(x)
+        return out.clone()
 
     layer.eval()
+    first = inferred()
+    torch.testing.assert_close(first, unfolded())
+    assert layer._fold is not None and not any(t.requires_grad or t.is_inference() for t in layer._fold[1:])
+    copy.deepcopy(layer)                                                      # a cached fold is a plain tensor
     with torch.no_grad():
-        torch.testing.assert_close(layer(x), unfolded())
-        with torch.inference_mode():
-            first = layer(x)
-        torch.testing.assert_close(first, unfolded())
         layer.load_state_dict({k: v + 0.5 for k, v in layer.state_dict().items()})   # in-place copies
-        torch.testing.assert_close(layer(x), unfolded())
-        assert not torch.allclose(layer(x), first)
-    layer.train()   # a training step moves the running statistics; eval folds the new ones
+    torch.testing.assert_close(inferred(), unfolded())
+    assert not torch.allclose(inferred(), first)
+    layer.linear.weight.data.mul_(2.0)             # .data has its own version counter: clear_fold() refolds
+    layer.clear_fold()
+    torch.testing.assert_close(inferred(), unfolded())
+    layer.train()                                  # a training step moves the running statistics
     layer(x + 3.0)
     layer.eval()
-    with torch.no_grad():
-        torch.testing.assert_close(layer(x), unfolded())
-    y = layer(x)    # eval mode with autograd: the cached weights are plain tensors
-    y.sum().backward()
+    torch.testing.assert_close(inferred(), unfolded())
+    # eval mode with autograd folds every call: gradients reach the parameters, twice
+    for _ in range(2):
+        layer.zero_grad()
+        layer(x).sum().backward()
+        assert layer.linear.weight.grad is not None and layer.linear.weight.grad.abs().sum() > 0

@@ -119,7 +119,7 @@ def _fps_pruned(xyz: np.ndarray, n: int, leaf: int) -> np.ndarray:
     leaf_pos = np.zeros(leaves, np.int64)   # sorted position of the leaf's farthest point (lowest index)
     # (bits of leaf_max) << 32 | (m - original index): one integer max finds the farthest point, ties to the
     # lowest index (the bits of non-negative floats order as the floats)
-    leaf_key = np.zeros(leaves, np.int64)
+    leaf_key = np.zeros(leaves, np.int64)   # 0: not scanned yet (a scanned leaf's key is >= 1)
     max_bits = leaf_max.view(np.int32)
     gap = np.empty(leaves, np.float32)
     shrink = np.float32(1.0 - 1e-5)
@@ -147,7 +147,8 @@ def _fps_pruned(xyz: np.ndarray, n: int, leaf: int) -> np.ndarray:
                 mind[i] = d
                 top = max(top, d)
             # distances only fall: an unchanged maximum still held by the same point keeps its lowest index
-            if top == leaf_max[f] and mind[leaf_pos[f]] == top:
+            # (a leaf not scanned yet has no such point: key 0; its max may start at inf, an overflowed distance)
+            if leaf_key[f] != 0 and top == leaf_max[f] and mind[leaf_pos[f]] == top:
                 continue
             top_arg, top_pos = m, s
             for i in range(s, e):

@@ -32,9 +32,13 @@ class GGDOutput(NamedTuple):
 
 
 class LinearBN(nn.Module):
-    """Point-wise Linear + BatchNorm + ReLU on (..., C); in eval mode BN is folded into the Linear (the folded
-    weights are cached until a training-mode forward or an in-place change of a parameter or buffer: the same
-    values as folding every call)."""
+    """Point-wise Linear + BatchNorm + ReLU on (..., C); in eval mode BN is folded into the Linear.
+
+    Under `torch.inference_mode` (the pipeline, the evaluation) the folded weights are cached until a
+    training-mode forward or an in-place change of a parameter or buffer (its version counter): the same values
+    as folding every call. In-place changes through `.data` (its own version counter) are not seen there; fold
+    anew with `clear_fold()`. Outside inference mode every call folds (autograd reaches the parameters).
+    """
 
     def __init__(self, cin: int, cout: int, relu: bool = True) -> None:
         super().__init__()
@@ -43,14 +47,23 @@ class LinearBN(nn.Module):
         self.relu = relu
         self._fold: tuple[tuple, Tensor, Tensor] | None = None   # (key, bias, weight^T): one attribute, thread-safe
 
+    def clear_fold(self) -> None:
+        """Drop the cached folded weights."""
+        self._fold = None
+
+    def _fold_now(self) -> tuple[Tensor, Tensor]:
+        scale = self.bn.weight * torch.rsqrt(self.bn.running_var + self.bn.eps)
+        return self.bn.bias - self.bn.running_mean * scale, (self.linear.weight * scale[:, None]).t()
+
     def _folded(self) -> tuple[Tensor, Tensor]:
+        if not torch.is_inference_mode_enabled():
+            return self._fold_now()
         sources = (self.linear.weight, self.bn.weight, self.bn.bias, self.bn.running_mean, self.bn.running_var)
         key = tuple((t.data_ptr(), t._version, t.dtype, t.device) for t in sources)
         fold = self._fold
         if fold is None or fold[0] != key:
-            with torch.no_grad(), torch.inference_mode(False):   # plain tensors: usable in and out of inference mode
-                scale = self.bn.weight * torch.rsqrt(self.bn.running_var + self.bn.eps)
-                fold = (key, self.bn.bias - self.bn.running_mean * scale, (self.linear.weight * scale[:, None]).t())
+            with torch.inference_mode(False), torch.no_grad():   # plain tensors without a graph
+                fold = (key, *self._fold_now())
             self._fold = fold
         return fold[1], fold[2]
 
