@@ -59,6 +59,9 @@ def test_pruned_fps_matches_the_plain_scan_on_overflowed_distances_and_leaf_edge
         for n in (1, 2, len(cloud)):
             assert np.array_equal(fps_pruned(cloud, n), _plain_fps(cloud, n))
         assert np.array_equal(fps(cloud[None], len(cloud))[0], _plain_fps(cloud, len(cloud)))
+    assert fps(huge[None], 0).shape == (1, 0)
+    with pytest.raises(ValueError, match="fps"):   # never an out-of-bounds write
+        fps(huge[None, :3], 4)
     for m in (1, 31, 32, 33):                       # a leaf of 32: one point, one short of full, full, one over
         cloud = (rng.random((m, 3))).astype(np.float32)
         for n in sorted({1, m}):

@@ -52,9 +52,13 @@ def fps(xyz: np.ndarray, n: int) -> np.ndarray:
     """Indices (B, n) int64 of the farthest point sampling of each cloud of xyz (B, M, 3) float32, n <= M: the
     pruned scan (`fps_pruned`, leaves of 32) for a finite cloud, the plain scan otherwise (same indices)."""
     b = xyz.shape[0]
+    if n < 0 or n > xyz.shape[1]:
+        raise ValueError("fps: need 0 <= n <= the number of points")
     out = np.empty((b, n), np.int64)
+    if n == 0:
+        return out
     for c in range(b):
-        if n > 0 and np.isfinite(xyz[c]).all():
+        if np.isfinite(xyz[c]).all():
             out[c] = _fps_pruned(np.ascontiguousarray(xyz[c]), n, 32)
         else:
             _fps_cloud(xyz[c], n, out[c])
