@@ -22,6 +22,7 @@ import numba
 import numpy as np
 
 _INF = np.float32(np.inf)
+FPS_LEAF = 32   # points per leaf of the pruned FPS (on the merge's ~3,000 points, 24 to 40 were within 5 %)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -50,7 +51,7 @@ def _fps_cloud(xyz: np.ndarray, n: int, out: np.ndarray) -> None:
 @numba.njit(cache=True, nogil=True)
 def fps(xyz: np.ndarray, n: int) -> np.ndarray:
     """Indices (B, n) int64 of the farthest point sampling of each cloud of xyz (B, M, 3) float32, n <= M: the
-    pruned scan (`fps_pruned`, leaves of 32) for a finite cloud, the plain scan otherwise (same indices)."""
+    pruned scan (`fps_pruned`, leaves of FPS_LEAF) for a finite cloud, the plain scan otherwise (same indices)."""
     b = xyz.shape[0]
     if n < 0 or n > xyz.shape[1]:
         raise ValueError("fps: need 0 <= n <= the number of points")
@@ -59,7 +60,7 @@ def fps(xyz: np.ndarray, n: int) -> np.ndarray:
         return out
     for c in range(b):
         if np.isfinite(xyz[c]).all():
-            out[c] = _fps_pruned(np.ascontiguousarray(xyz[c]), n, 32)
+            out[c] = _fps_pruned(np.ascontiguousarray(xyz[c]), n, FPS_LEAF)
         else:
             _fps_cloud(xyz[c], n, out[c])
     return out
@@ -84,7 +85,7 @@ def _morton_order(xyz: np.ndarray) -> np.ndarray:
     return np.argsort(codes, kind="mergesort")
 
 
-def fps_pruned(xyz: np.ndarray, n: int, leaf: int = 32) -> np.ndarray:
+def fps_pruned(xyz: np.ndarray, n: int, leaf: int = FPS_LEAF) -> np.ndarray:
     """Indices (n,) int64 of the farthest point sampling of one finite cloud xyz (M, 3), 1 <= n <= M: the same
     indices as the plain scan `_fps_cloud` (start at point 0, ties to the lowest index, the same float32
     distances).
