@@ -1,9 +1,9 @@
 """Track fusion: each tracked vehicle's points from all of its frames, accumulated in its own box frame.
 
 A vehicle's points are kept per frame in metres in the box frame of that frame's box (centred on the box,
-rotated by -yaw, not divided by the length), so a later box of a slightly different length does not
-rescale old points. `TrackFusion.update` returns each vehicle with the track's fused partial in the
-current box's normalised frame (divided by the current length, as `geometry.normalize` does): the
+rotated by -yaw, not divided by the length; then aligned to the track, below), so a later box of a slightly
+different length does not rescale old points. `TrackFusion.update` returns each vehicle with the track's
+fused partial in the current box's normalised frame (divided by the current length, as `geometry.normalize` does): the
 network sees every side the track has shown so far. The partial lists the oldest frame first, so the
 farthest point sampling of the network input (and of the measured merge) starts at the same point from
 frame to frame (until the bounds drop the oldest frame), which keeps consecutive completions alike
@@ -15,10 +15,19 @@ resamples the network input to its fixed size anyway, so this only bounds memory
 work), whole oldest frames are dropped beyond `max_points_per_track` or `max_frames_per_track`, the least
 recently seen tracks are evicted beyond `max_tracks`, and tracks unseen for `expiry_s` (stamp time) expire.
 
-Box jitter is not corrected: tracked or annotated boxes are used as given, with no alignment (no ICP)
-between frames, so a box that jitters by a few centimetres blurs the fused partial by as much. A box
-whose length, width or height jumps by more than `size_change` (relative) starts the track afresh: the
-detector reused the id for another object. Vehicles with a negative instance id (no track) and repeats
+Box jitter: each new frame's points are aligned to the track's fused points before they are stored
+(`registration.align_planar`: x, y and yaw, trimmed ICP, bounded in cost and in the correction it may
+apply; `FusionLimits.align`, None = off). The frames are stored in the track's own frame (the first
+frame's box, every later frame aligned to the points before it) and handed out in the mean placement of
+the track's boxes (the inverse of the mean correction applied; a refused or unaligned frame counts as no
+correction), not in the current box's placement: the completion keeps its place in the box from frame to
+frame instead of following this box's jitter, and sits as far (a few centimetres) from this frame's
+measured points as this box is off the mean. A fit that is refused (fewer than `min_pairs` points or
+matches, or a correction too large to be jitter) stores the frame as its box placed it; both outcomes are
+counted.
+
+A box whose length, width or height jumps by more than `size_change` (relative) starts the track afresh:
+the detector reused the id for another object. Vehicles with a negative instance id (no track) and repeats
 of an id within one frame are passed through unfused.
 """
 from __future__ import annotations
@@ -27,12 +36,13 @@ import math
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
 from gd_completion.geometry import Box3D, denormalize
 from gd_completion.preprocess import CroppedVehicle
+from gd_completion.registration import AlignSettings, align_planar
 
 __all__ = ["FusionLimits", "TrackFusion", "voxel_downsample"]
 
@@ -48,10 +58,15 @@ class FusionLimits:
     expiry_s: float = 3.0               # a track not seen for this long (stamp time) is dropped
     size_change: float = 0.25           # relative change of the box length, width or height that resets a
                                         # track (a detector reused the id for another object)
+    align: AlignSettings | None = field(default_factory=AlignSettings)  # per-frame jitter alignment; None = off
 
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
+            if f.name == "align":
+                if value is not None and not isinstance(value, AlignSettings):
+                    raise ValueError(f"FusionLimits.align={value!r} must be AlignSettings or None")
+                continue
             if f.type == "int" and (isinstance(value, bool) or int(value) != value):
                 raise ValueError(f"FusionLimits.{f.name}={value!r} must be an integer")
             if not (math.isfinite(value) and value > 0):
@@ -70,13 +85,14 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 class _Track:
     """One track: its last box and stamp, its frames (newest last) in metres in the box frame."""
 
-    __slots__ = ("box", "frames", "last_ns", "points")
+    __slots__ = ("box", "corrections", "frames", "last_ns", "points")
 
     def __init__(self, box: Box3D, stamp_ns: int) -> None:
         self.box = box
         self.last_ns = stamp_ns
         self.frames: deque[np.ndarray] = deque()
         self.points = 0
+        self.corrections = np.zeros(4)  # sums of (yaw, tx, ty) of the frames' alignments, and the frame count
 
     def add(self, metres: np.ndarray, limits: FusionLimits) -> None:
         if len(metres) > limits.max_points_per_track:   # one frame alone over the bound: evenly thinned
@@ -88,10 +104,19 @@ class _Track:
                                         or len(self.frames) > limits.max_frames_per_track):
             self.points -= len(self.frames.popleft())
 
+    def metres(self) -> np.ndarray:
+        """(P, 3) float32: every frame's points in metres in the track's frame, oldest frame first."""
+        return np.concatenate(list(self.frames)) if self.frames else np.zeros((0, 3), np.float32)
+
     def fused_normalized(self) -> np.ndarray:
         """(P, 3) float32: every frame's points, oldest frame first, divided by the current length."""
-        metres = np.concatenate(list(self.frames)) if self.frames else np.zeros((0, 3), np.float32)
-        return (metres.astype(np.float64) / self.box.size[0]).astype(np.float32)
+        metres = self.metres().astype(np.float64)
+        if self.corrections[3] > 0 and self.corrections[:3].any():   # into the mean box placement
+            yaw, tx, ty = self.corrections[:3] / self.corrections[3]
+            c, s = np.cos(yaw), np.sin(yaw)
+            x, y = metres[:, 0] - tx, metres[:, 1] - ty
+            metres[:, 0], metres[:, 1] = c * x + s * y, -s * x + c * y
+        return (metres / self.box.size[0]).astype(np.float32)
 
 
 def _size_jump(old: Box3D, new: Box3D, limit: float) -> bool:
@@ -114,6 +139,8 @@ class TrackFusion:
         self._expired = 0
         self._reset = 0
         self._evicted = 0
+        self._aligned = 0
+        self._align_refused = 0
 
     def update(self, stamp_ns: int, vehicles: Sequence[CroppedVehicle]) -> list[CroppedVehicle]:
         """Add each vehicle (keyed by `box.instance_id`) to its track; return, in the same order, the vehicles
@@ -147,7 +174,17 @@ class TrackFusion:
             track = _Track(box, stamp_ns)
         track.box, track.last_ns = box, stamp_ns
         metres = np.asarray(vehicle.normalized, dtype=np.float32).reshape(-1, 3) * np.float32(box.size[0])
-        track.add(voxel_downsample(metres, self.limits.voxel_size), self.limits)
+        metres = voxel_downsample(metres, self.limits.voxel_size)
+        if self.limits.align is not None and track.frames and len(metres):
+            transform = align_planar(metres, track.metres(), self.limits.align)
+            if transform is None:
+                self._align_refused += 1
+            else:
+                metres = transform.apply(metres)
+                self._aligned += 1
+                track.corrections[:3] += (transform.yaw, transform.tx, transform.ty)
+        track.corrections[3] += 1
+        track.add(metres, self.limits)
         self._tracks[key] = track
         fused = track.fused_normalized()
         while len(self._tracks) > self.limits.max_tracks:
@@ -184,7 +221,9 @@ class TrackFusion:
 
     @property
     def counters(self) -> dict[str, int]:
-        """Tracks alive now, and tracks expired, reset (size jump) and evicted (over `max_tracks`) so far."""
+        """Tracks alive now, and tracks expired, reset (size jump) and evicted (over `max_tracks`) so far; frames
+        aligned to their track and alignments refused (the frame stored as its box placed it) so far."""
         with self._lock:
             return {"tracks_alive": len(self._tracks), "tracks_expired": self._expired,
-                    "tracks_reset": self._reset, "tracks_evicted": self._evicted}
+                    "tracks_reset": self._reset, "tracks_evicted": self._evicted,
+                    "frames_aligned": self._aligned, "alignments_refused": self._align_refused}

@@ -546,6 +546,11 @@ def test_complete_with_track_fusion(shared_data: Path, model_path: str, tmp_path
                 ids, counts = np.unique(pts["instance_id"][pts["generated"] == 0], return_counts=True)
                 frames.append(dict(zip(ids.tolist(), counts.tolist())))
             return frames
+    def measured_points(path: Path) -> list[np.ndarray]:
+        with open_bag(path) as reader:
+            conns = [c for c in reader.connections if c.topic == "/pandar64/completed"]
+            return [np.stack([(p := read_points(deserialize(raw, conn.msgtype)))[a][p["generated"] == 0]
+                              for a in "xyz"], 1) for conn, _, raw in iter_raw(reader, conns)]
     plain_counts, fused_counts = measured_per_frame(plain), measured_per_frame(fused)
     assert len(fused_counts) == 4
     seen_all = set.intersection(*(set(f) for f in fused_counts))
@@ -554,5 +559,12 @@ def test_complete_with_track_fusion(shared_data: Path, model_path: str, tmp_path
         fused_track = [f[track] for f in fused_counts]
         assert fused_track == sorted(fused_track) and fused_track[-1] > fused_track[0]   # accumulates
         assert fused_track[-1] > max(f[track] for f in plain_counts)                      # more than any frame
+    # --no-fusion-align: the same points per frame, stored where the boxes put them (the first frame unmoved)
+    unaligned = tmp_path / "unaligned"
+    assert main(["complete", str(bag), str(unaligned), *base, "--track-fusion", "--publish-fused-points",
+                 "--no-fusion-align"]) == 0
+    assert measured_per_frame(unaligned) == fused_counts
+    first, moved = measured_points(fused), measured_points(unaligned)
+    assert first[0].tobytes() == moved[0].tobytes() and first[-1].tobytes() != moved[-1].tobytes()
     code = main(["complete", str(bag), str(tmp_path / "refused"), *base, "--track-fusion", "--workers", "2"])
     assert code == 2 and not (tmp_path / "refused").exists()

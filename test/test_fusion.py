@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -71,15 +72,16 @@ def side_of(metres: np.ndarray) -> np.ndarray:
 
 def test_limits_are_validated() -> None:
     FusionLimits()
+    FusionLimits(align=None)
     for bad in ({"max_tracks": 0}, {"max_points_per_track": -1}, {"voxel_size": math.nan},
-                {"expiry_s": math.inf}, {"size_change": 0.0}, {"max_frames_per_track": 2.5}):
+                {"expiry_s": math.inf}, {"size_change": 0.0}, {"max_frames_per_track": 2.5}, {"align": True}):
         with pytest.raises(ValueError):
             FusionLimits(**bad)
 
 
 def test_moving_vehicle_fuses_every_side() -> None:
     prep = Preprocessing(ground_clearance=0.0)
-    fusion = TrackFusion()
+    fusion = TrackFusion(FusionLimits(align=None))   # the exact union (alignment: test_box_jitter_is_aligned)
     singles: list[np.ndarray] = []
     for k, (points, box) in enumerate(moving_track()):
         vehicles, too_few = crop_vehicles(points, [box], prep)
@@ -99,7 +101,42 @@ def test_moving_vehicle_fuses_every_side() -> None:
     local = normalize(cloud, box).astype(np.float64) * SIZE[0]
     assert np.all(np.abs(np.abs(local) / (np.array(SIZE) / 2)).max(axis=1) == pytest.approx(1.0, abs=1e-4))
     np.testing.assert_array_equal(side_of(local), side_of(fused.normalized * SIZE[0]))
-    assert fusion.counters == {"tracks_alive": 1, "tracks_expired": 0, "tracks_reset": 0, "tracks_evicted": 0}
+    assert fusion.counters == {"tracks_alive": 1, "tracks_expired": 0, "tracks_reset": 0, "tracks_evicted": 0,
+                               "frames_aligned": 0, "alignments_refused": 0}
+
+
+def test_box_jitter_is_aligned() -> None:
+    """A parked car seen from the same side in every frame, a fresh sampling each time, its box jittering by
+    known shifts and turns: aligned, the frames coincide and the fused partial lies in the mean box placement;
+    without alignment it is blurred by the jitter."""
+    from test_registration import seen_part
+
+    from gd_completion.evaluation.nearest import nearest_sq
+
+    rng = np.random.default_rng(3)
+    true_centre, true_yaw = np.array([12.0, 4.0, -0.8]), 0.4
+    car = Box3D(tuple(true_centre), SIZE, true_yaw, "car", 9)
+    jitter = np.column_stack([rng.normal(0, 0.04, (12, 2)), np.radians(rng.normal(0, 1.0, 12))])
+    boxes = [replace(car, center=(true_centre[0] + dx, true_centre[1] + dy, true_centre[2]), yaw=true_yaw + dyaw)
+             for dx, dy, dyaw in jitter]
+    clouds = [to_cloud(seen_part(np.random.default_rng(10 + k), 800), car) for k in range(len(boxes))]
+    mean_box = replace(car, center=tuple(np.mean([b.center for b in boxes], axis=0)),
+                       yaw=float(np.mean([b.yaw for b in boxes])))
+    truth = normalize(to_cloud(seen_part(np.random.default_rng(99), 200_000), car), mean_box) * SIZE[0]
+
+    def blur(limits: FusionLimits) -> tuple[float, dict[str, int]]:
+        fusion = TrackFusion(limits)
+        for k, (cloud, box) in enumerate(zip(clouds, boxes)):
+            (fused,) = fusion.update(k, [CroppedVehicle(box, cloud, normalize(cloud, box))])
+        metres = fused.normalized.astype(np.float64) * SIZE[0]
+        gap = np.sqrt(nearest_sq(metres, truth))
+        return float(np.median(gap)), fusion.counters
+
+    aligned, counters = blur(FusionLimits())
+    plain, plain_counters = blur(FusionLimits(align=None))
+    assert counters["frames_aligned"] == len(boxes) - 1 and counters["alignments_refused"] == 0
+    assert plain_counters["frames_aligned"] == 0
+    assert plain > 0.01 and aligned < 0.008 and aligned < plain / 2   # metres, median
 
 
 def test_voxel_downsampling_keeps_first_point_per_voxel() -> None:
@@ -146,7 +183,8 @@ def test_tracks_bound_evicts_least_recently_seen() -> None:
     assert len(again.normalized) == 5
     (one,) = fusion.update(4, [vehicle(1, distinct(2))])
     assert len(one.normalized) == 2                          # 1 was evicted: fresh too
-    assert fusion.counters == {"tracks_alive": 2, "tracks_expired": 0, "tracks_reset": 0, "tracks_evicted": 3}
+    assert fusion.counters == {"tracks_alive": 2, "tracks_expired": 0, "tracks_reset": 0, "tracks_evicted": 3,
+                               "frames_aligned": 0, "alignments_refused": 1}   # 3 points: too few to align
 
 
 def test_expiry_by_stamp() -> None:

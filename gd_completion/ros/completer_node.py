@@ -100,7 +100,8 @@ class CompleterNode(Node):
         if p.track_fusion:
             self.completer.fusion = TrackFusion(FusionLimits(max_tracks=p.fusion_max_tracks,
                                                              max_points_per_track=p.fusion_max_points,
-                                                             expiry_s=p.fusion_expiry))
+                                                             expiry_s=p.fusion_expiry,
+                                                             **({} if p.fusion_align else {"align": None})))
             self.completer.publish_fused_points = p.publish_fused_points
         check_model_sizes(p, self.completer.num_input, self.completer.num_output, p.model_path or "(shipped weights)")
         self.completer.warm_up()

@@ -51,6 +51,7 @@ class CompleterParams:
     fusion_max_tracks: int
     fusion_max_points: int
     fusion_expiry: float
+    fusion_align: bool
 
 
 def _int(lo: int, hi: int) -> dict[str, Any]:
@@ -131,6 +132,8 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                                                         "dropped first).", _int(100, 10000000)),
     "fusion_expiry": (_FUSION.expiry_s, "Seconds (stamp time) after which a track not seen is dropped.",
                       _float(0.05, 3600.0)),
+    "fusion_align": (True, "Align each new frame of a track to its fused points (x, y, yaw; bounded ICP) against "
+                           "box jitter; false stores it as its box places it.", {}),
 }
 LIMIT_PARAMETERS = {"max_boxes": "max_boxes", "max_box_length": "max_box_length", "max_box_width": "max_box_width",
                     "max_box_height": "max_box_height", "min_box_length": "min_box_length",

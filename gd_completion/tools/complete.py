@@ -82,13 +82,14 @@ class CompletionSummary:
         self.nonfinite_points += stats.nonfinite_points
 
 
-def start_fusion(pool: FramePool, publish_fused_points: bool) -> None:
-    """Give the pool's in-process completer a fresh track accumulator (one per bag)."""
-    from gd_completion.fusion import TrackFusion
+def start_fusion(pool: FramePool, publish_fused_points: bool, align: bool = True) -> None:
+    """Give the pool's in-process completer a fresh track accumulator (one per bag); `align` False stores the
+    frames as their boxes place them (`FusionLimits.align` None)."""
+    from gd_completion.fusion import FusionLimits, TrackFusion
 
     if pool.completer is None:
         raise BagError("track fusion needs every frame of a bag in order in one process: use --workers 1")
-    pool.completer.fusion = TrackFusion()
+    pool.completer.fusion = TrackFusion(FusionLimits() if align else FusionLimits(align=None))
     pool.completer.publish_fused_points = publish_fused_points
 
 
@@ -97,7 +98,8 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                  storage: str = "mcap", completer: Any = None, overwrite: bool = False,
                  progress: bool = True, workers: int = 1, sync_tolerance: float = SYNC_TOLERANCE_S,
                  skip_unknown_types: bool = False, pool: FramePool | None = None, track_fusion: bool = False,
-                 publish_fused_points: bool = False, **completer_options: Any) -> CompletionSummary:
+                 publish_fused_points: bool = False, fusion_align: bool = True,
+                 **completer_options: Any) -> CompletionSummary:
     """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message.
 
     Clouds and boxes are paired as the node pairs them (stamps within `sync_tolerance` seconds); a cloud the
@@ -111,7 +113,8 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
     version, the model's SHA-256 and the parameters.
     `track_fusion`: each tracked vehicle (box id = track id) is completed from its points of all the bag's
     frames so far (a fresh `fusion.TrackFusion` per bag; frames in order, so in this process only);
-    `publish_fused_points` writes the fused measured points instead of each frame's own.
+    `publish_fused_points` writes the fused measured points instead of each frame's own; `fusion_align` False
+    turns off the alignment of each frame to its track (box jitter).
     A topic of a type with no stored definition and unknown here cannot be copied: BagError, unless
     `skip_unknown_types`, which leaves it out with a warning on stderr (counted in `summary.not_copied`).
     """
@@ -145,7 +148,7 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                 conns = {conn.id: copy_connection(writer, conn, src) for conn in copied}
                 out_conn = add_connection(writer, output_topic, POINTCLOUD2)
                 if track_fusion:
-                    start_fusion(pool, publish_fused_points)
+                    start_fusion(pool, publish_fused_points, fusion_align)
 
                 def submit(decided: list[tuple[RecordedCloud, Any]]) -> None:
                     """Submit the clouds whose boxes are known (or known to be none)."""
@@ -227,7 +230,8 @@ def _run(args: argparse.Namespace) -> int:
                                storage=args.storage, overwrite=args.overwrite, progress=not args.quiet,
                                workers=workers, sync_tolerance=args.sync_tolerance,
                                skip_unknown_types=args.skip_unknown_types, track_fusion=args.track_fusion,
-                               publish_fused_points=args.publish_fused_points, **options)
+                               publish_fused_points=args.publish_fused_points,
+                               fusion_align=not args.no_fusion_align, **options)
         print(f"wrote {args.output}: {summary.text()}")
         return 0
     if many.is_single_bag(args.input):  # --engine ray on one bag: OUTPUT is still the output bag
@@ -242,7 +246,8 @@ def _run(args: argparse.Namespace) -> int:
         overwrite=args.overwrite, progress=not args.quiet, report=many.print_line, completer_options=options,
         cloud_topic=args.cloud_topic, boxes_topic=args.boxes_topic, output_topic=args.output_topic,
         storage=args.storage, sync_tolerance=args.sync_tolerance, skip_unknown_types=args.skip_unknown_types,
-        track_fusion=args.track_fusion, publish_fused_points=args.publish_fused_points)
+        track_fusion=args.track_fusion, publish_fused_points=args.publish_fused_points,
+        fusion_align=not args.no_fusion_align)
     for outcome in outcomes:
         if outcome.status == "skipped":
             many.print_line(outcome)
@@ -296,6 +301,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "far, as the node's track_fusion (frames in order: --workers 1)")
     parser.add_argument("--publish-fused-points", action="store_true",
                         help="with --track-fusion, write the fused measured points instead of each frame's own")
+    parser.add_argument("--no-fusion-align", action="store_true",
+                        help="with --track-fusion, store each frame as its box places it, without aligning it to "
+                        "its track (as the node's fusion_align:=false)")
     parser.add_argument("--no-measured-merge", action="store_true",
                         help="write the network's completions as they are, as the node's measured_merge:=false "
                         "(default: thinned together with the measured points fed to the network and their mirror "
