@@ -9,6 +9,7 @@ py=.venv/bin/python
   echo "# $(date -u +%FT%TZ) $(nproc) cores, $(uname -m), load before: $(cut -d' ' -f1-3 /proc/loadavg)"
   echo "## model: torch path vs fast path (bench_model.py --stages --train)"; $py benchmarks/bench_model.py --stages --train || echo "!! bench_model.py failed"
   echo "## core (bench_core.py)"; $py benchmarks/bench_core.py || echo "!! bench_core.py failed"
+  echo "## track fusion (bench_fusion.py)"; $py benchmarks/bench_fusion.py || echo "!! bench_fusion.py failed"
   echo "## node, 20 vehicles (bench_node.py)"; $py benchmarks/bench_node.py || echo "!! bench_node.py failed"
   echo "## node, PandaSet frame 0 (bench_node.py --pandaset 0)"; $py benchmarks/bench_node.py --pandaset 0 || echo "!! bench_node.py failed"
   echo "## offline tools (bench_tools.py --complete-frames 10)"; $py benchmarks/bench_tools.py --complete-frames 10 || echo "!! bench_tools.py failed"

@@ -244,6 +244,12 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
     t3 = time.perf_counter()
     notes = [f"TrackFusion returned no fused partial for {dropped} vehicle-frames (their own frame was used)"] \
         if dropped else []
+    counters = getattr(fusion, "counters", {})
+    if "frames_aligned" in counters:
+        aligned, refused = counters["frames_aligned"], counters["alignments_refused"]
+        notes.append(f"frames aligned to their track before fusion: {aligned}, alignments refused: {refused} "
+                     "(stored as their boxes place them)" if aligned + refused else
+                     "no frame was aligned to its track (alignment off: frames stored as their boxes place them)")
     per_k: dict[int, list[tuple[float, float, float]]] = {k: [] for k in FUSED_FRAMES}
     single_only = 0
     for i, (cover, _) in plans.items():

@@ -118,11 +118,14 @@ def run_evaluation(args: argparse.Namespace) -> int:
             emit("## PandaSet 002: track fusion\n\nSkipped: gd_completion.fusion is not installed.")
         else:
             from gd_completion.evaluation.fusion_eval import evaluate_fusion
+            from gd_completion.fusion import FusionLimits, TrackFusion
 
             t0 = time.perf_counter()
             fused = evaluate_fusion(model, pandaset, preprocessing=preprocessing, max_frames=args.fusion_max_frames,
                                     consistency_frames=args.fusion_consistency_frames,
-                                    max_vehicles=args.fusion_max_vehicles, max_batch=args.max_batch)
+                                    max_vehicles=args.fusion_max_vehicles, max_batch=args.max_batch,
+                                    fusion_factory=lambda: TrackFusion(
+                                        FusionLimits(align=None) if args.no_fusion_align else FusionLimits()))
             emit(fusion_section(fused))
             steps = ", ".join(f"{k} {v:.1f} s" for k, v in fused.seconds.items())
             timings.append(f"fusion: {time.perf_counter() - t0:.1f} s ({steps})")
@@ -172,6 +175,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="first N frames of each vehicle fed to the track fusion (default 20)")
     parser.add_argument("--fusion-consistency-frames", type=int, default=10,
                         help="first N frames of each vehicle in the consistency metric (default 10)")
+    parser.add_argument("--no-fusion-align", action="store_true",
+                        help="track fusion without aligning each frame to its track (the node's fusion_align:=false)")
     parser.add_argument("--fusion-max-vehicles", type=int, default=None,
                         help="first N stationary and N moving vehicles in the fusion part (default all)")
     parser.add_argument("--max-batch", type=int, default=32, help="vehicles per forward pass (default 32)")

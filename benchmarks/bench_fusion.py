@@ -1,0 +1,63 @@
+"""Track fusion's cost per vehicle and frame on PandaSet-002, with and without the alignment of each frame.
+
+Every vehicle track of the first --frames Pandar64 frames (cropped once, beforehand) is fed to a fresh
+`TrackFusion` frame after frame; the time of each `update` is divided by the vehicles it got. Alignment on
+and off alternate over --rounds rounds on the same data (ratios within one run: the machine is noisy).
+
+    python benchmarks/bench_fusion.py [--frames 20] [--rounds 3]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from gd_completion.datasets.pandaset import PandaSetSequence
+from gd_completion.evaluation.fusion_eval import load_frames, vehicle_tracks
+from gd_completion.fusion import FusionLimits, TrackFusion
+from gd_completion.preprocess import Preprocessing
+from gd_completion.registration import align_planar
+
+PANDASET = Path(__file__).resolve().parents[2] / "shared" / "data" / "pandaset-002"
+
+
+def run(frames: list, limits: FusionLimits) -> tuple[np.ndarray, dict[str, int]]:
+    """Milliseconds per vehicle of each frame's update, and the fusion's counters at the end."""
+    fusion = TrackFusion(limits)
+    per_vehicle = []
+    for stamp, vehicles in frames:
+        start = time.perf_counter()
+        fusion.update(stamp, vehicles)
+        per_vehicle.append((time.perf_counter() - start) * 1e3 / max(len(vehicles), 1))
+    return np.array(per_vehicle), fusion.counters
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--rounds", type=int, default=3)
+    args = ap.parse_args()
+    sequence = PandaSetSequence(PANDASET)
+    indices = sequence.frame_indices()[:args.frames]
+    loaded = load_frames(sequence, set(vehicle_tracks(sequence)), replace(Preprocessing(), min_points=1),
+                         frames=indices)
+    frames = [(sequence.stamp_ns(i), vehicles) for i, vehicles in loaded]
+    n_vehicles = sum(len(v) for _, v in frames)
+    align_planar(np.random.default_rng(0).random((64, 3)), np.random.default_rng(1).random((64, 3)))  # compile
+    print(f"PandaSet-002, Pandar64, {len(frames)} frames, {n_vehicles} vehicle-frames "
+          f"({n_vehicles / len(frames):.0f} vehicles per frame); ms per vehicle and frame, mean / p95 per round")
+    for r in range(args.rounds):
+        on, counters = run(frames, FusionLimits())
+        off, _ = run(frames, FusionLimits(align=None))
+        print(f"round {r + 1}: aligned {on.mean():.3f} / {np.percentile(on, 95):.3f}   "
+              f"unaligned {off.mean():.3f} / {np.percentile(off, 95):.3f}   "
+              f"alignment adds {on.mean() - off.mean():.3f} ms")
+    print(f"frames aligned {counters['frames_aligned']}, alignments refused {counters['alignments_refused']} "
+          "(fewer than 30 points or half of the frame matched, or beyond 0.3 m / 5 degrees)")
+
+
+if __name__ == "__main__":
+    main()
