@@ -19,6 +19,8 @@ from dataclasses import dataclass, fields
 import numba
 import numpy as np
 
+from gd_completion.cell_grid import bucket_by_cell
+
 __all__ = ["AlignSettings", "PlanarTransform", "align_planar"]
 
 MAX_GRID_CELLS = 1 << 22  # cells of the target grid at most (the cell grows beyond max_distance past it)
@@ -100,16 +102,7 @@ def _icp_planar(source: np.ndarray, target: np.ndarray, max_distance: float, ite
         for a in range(3):
             c = c * dims[a] + min(int((target[j, a] - lo[a]) / h), dims[a] - 1)
         cell[j] = c
-    start = np.zeros(total + 1, np.int64)
-    for j in range(m):
-        start[cell[j] + 1] += 1
-    for c in range(total):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    order = np.empty(m, np.int64)
-    for j in range(m):
-        order[fill[cell[j]]] = j
-        fill[cell[j]] += 1
+    start, order = bucket_by_cell(cell, total)
 
     limit = max_distance * max_distance
     yaw, tx, ty, pairs = 0.0, 0.0, 0.0, 0

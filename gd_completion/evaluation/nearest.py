@@ -9,6 +9,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from gd_completion.cell_grid import bucket_by_cell
+
 _INF = np.float32(np.inf)
 MAX_CELLS_PER_AXIS = 256
 
@@ -42,16 +44,7 @@ def _grid_nearest(query: np.ndarray, target: np.ndarray, out: np.ndarray) -> Non
             c = c * dims[a] + k
         cell[j] = c
     total = dims[0] * dims[1] * dims[2]
-    start = np.zeros(total + 1, np.int64)
-    for j in range(n):
-        start[cell[j] + 1] += 1
-    for c in range(total):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    order = np.empty(n, np.int64)
-    for j in range(n):
-        order[fill[cell[j]]] = j
-        fill[cell[j]] += 1
+    start, order = bucket_by_cell(cell, total)
     reach = max(dims[0], max(dims[1], dims[2]))
     c0 = np.empty(3, np.int64)
     for i in range(query.shape[0]):
