@@ -32,15 +32,15 @@ of an id within one frame are passed through unfused.
 """
 from __future__ import annotations
 
-import math
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from gd_completion.geometry import Box3D, denormalize
+from gd_completion.limits import check_positive_fields
 from gd_completion.preprocess import CroppedVehicle
 from gd_completion.registration import AlignSettings, align_planar
 
@@ -61,16 +61,9 @@ class FusionLimits:
     align: AlignSettings | None = field(default_factory=AlignSettings)  # per-frame jitter alignment; None = off
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name == "align":
-                if value is not None and not isinstance(value, AlignSettings):
-                    raise ValueError(f"FusionLimits.align={value!r} must be AlignSettings or None")
-                continue
-            if f.type == "int" and (isinstance(value, bool) or int(value) != value):
-                raise ValueError(f"FusionLimits.{f.name}={value!r} must be an integer")
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"FusionLimits.{f.name}={value!r} must be positive and finite")
+        if self.align is not None and not isinstance(self.align, AlignSettings):
+            raise ValueError(f"FusionLimits.align={self.align!r} must be AlignSettings or None")
+        check_positive_fields(self, skip=("align",))
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:

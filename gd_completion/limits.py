@@ -8,12 +8,27 @@ runs out, the vehicles that matter most to a planner are the ones done.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Collection, Sequence
+from dataclasses import asdict, dataclass, fields
+from typing import Any
 
 import numpy as np
 
 from gd_completion.geometry import Box3D, boxes_to_array
+
+
+def check_positive_fields(settings: Any, skip: Collection[str] = ()) -> None:
+    """ValueError naming the field unless every dataclass field of `settings` (but those in `skip`) is
+    positive and finite, and every field annotated `int` an integer (not a bool)."""
+    name = type(settings).__name__
+    for f in fields(settings):
+        if f.name in skip:
+            continue
+        value = getattr(settings, f.name)
+        if f.type == "int" and (isinstance(value, bool) or int(value) != value):
+            raise ValueError(f"{name}.{f.name}={value!r} must be an integer")
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name}.{f.name}={value!r} must be positive and finite")
 
 
 @dataclass(frozen=True)

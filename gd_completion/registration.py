@@ -14,12 +14,13 @@ box placed it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numba
 import numpy as np
 
 from gd_completion.cell_grid import bucket_by_cell
+from gd_completion.limits import check_positive_fields
 
 __all__ = ["AlignSettings", "PlanarTransform", "align_planar"]
 
@@ -40,12 +41,7 @@ class AlignSettings:
     max_target_points: int = 2048  # the track's points used for the fit at most (evenly strided)
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.type == "int" and (isinstance(value, bool) or int(value) != value):
-                raise ValueError(f"AlignSettings.{f.name}={value!r} must be an integer")
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"AlignSettings.{f.name}={value!r} must be positive and finite")
+        check_positive_fields(self)
         if self.min_overlap > 1:
             raise ValueError(f"AlignSettings.min_overlap={self.min_overlap!r} must be at most 1")
 
