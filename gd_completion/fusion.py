@@ -42,7 +42,7 @@ import numpy as np
 from gd_completion.geometry import Box3D, denormalize
 from gd_completion.limits import check_positive_fields
 from gd_completion.preprocess import CroppedVehicle
-from gd_completion.registration import AlignSettings, align_planar
+from gd_completion.registration import AlignSettings, PlanarTransform, align_planar
 
 __all__ = ["FusionLimits", "TrackFusion", "voxel_downsample"]
 
@@ -78,14 +78,15 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 class _Track:
     """One track: its last box and stamp, its frames (newest last) in metres in the box frame."""
 
-    __slots__ = ("box", "corrections", "frames", "last_ns", "points")
+    __slots__ = ("box", "correction_sum", "frames", "frames_seen", "last_ns", "points")
 
     def __init__(self, box: Box3D, stamp_ns: int) -> None:
         self.box = box
         self.last_ns = stamp_ns
         self.frames: deque[np.ndarray] = deque()
         self.points = 0
-        self.corrections = np.zeros(4)  # sums of (yaw, tx, ty) of the frames' alignments, and the frame count
+        self.correction_sum = np.zeros(3)  # (yaw, tx, ty) of the frames' alignments, summed
+        self.frames_seen = 0               # frames added since the track started (dropped ones included)
 
     def add(self, metres: np.ndarray, limits: FusionLimits) -> None:
         if len(metres) > limits.max_points_per_track:   # one frame alone over the bound: evenly thinned
@@ -104,11 +105,8 @@ class _Track:
     def fused_normalized(self) -> np.ndarray:
         """(P, 3) float32: every frame's points, oldest frame first, divided by the current length."""
         metres = self.metres().astype(np.float64)
-        if self.corrections[3] > 0 and self.corrections[:3].any():   # into the mean box placement
-            yaw, tx, ty = self.corrections[:3] / self.corrections[3]
-            c, s = np.cos(yaw), np.sin(yaw)
-            x, y = metres[:, 0] - tx, metres[:, 1] - ty
-            metres[:, 0], metres[:, 1] = c * x + s * y, -s * x + c * y
+        if self.correction_sum.any():   # into the mean box placement: undo the mean correction
+            metres = PlanarTransform(*(self.correction_sum / self.frames_seen)).undo(metres)
         return (metres / self.box.size[0]).astype(np.float32)
 
 
@@ -175,8 +173,8 @@ class TrackFusion:
             else:
                 metres = transform.apply(metres)
                 self._aligned += 1
-                track.corrections[:3] += (transform.yaw, transform.tx, transform.ty)
-        track.corrections[3] += 1
+                track.correction_sum += (transform.yaw, transform.tx, transform.ty)
+        track.frames_seen += 1
         track.add(metres, self.limits)
         self._tracks[key] = track
         fused = track.fused_normalized()

@@ -68,6 +68,14 @@ class PlanarTransform:
         out[:, 1] = s * points[:, 0] + c * points[:, 1] + self.ty
         return out.astype(np.float32)
 
+    def undo(self, points: np.ndarray) -> np.ndarray:
+        """(M, 3) points moved by the inverse transform, R(-yaw) (p - t), float64."""
+        out = np.array(points, dtype=np.float64).reshape(-1, 3)
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        x, y = out[:, 0] - self.tx, out[:, 1] - self.ty
+        out[:, 0], out[:, 1] = c * x + s * y, -s * x + c * y
+        return out
+
 
 def _strided(points: np.ndarray, n: int) -> np.ndarray:
     if len(points) <= n:

@@ -69,3 +69,12 @@ def test_target_with_far_outliers_uses_a_coarser_grid() -> None:
 def test_settings_are_validated(bad: dict) -> None:
     with pytest.raises(ValueError):
         AlignSettings(**bad)
+
+
+def test_undo_inverts_apply() -> None:
+    points = seen_part(np.random.default_rng(4), 200)
+    transform = PlanarTransform(math.radians(3.0), 0.12, -0.07)
+    back = transform.undo(transform.apply(points))
+    assert back.dtype == np.float64
+    np.testing.assert_allclose(back, points, atol=1e-6)
+    assert np.abs(transform.apply(points) - points).max() > 0.05   # it did move them
