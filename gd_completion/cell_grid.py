@@ -1,5 +1,5 @@
 """Points bucketed by the cell of a uniform grid (numba counting sort): the shared step of the grid searches
-(`registration`'s ICP, `evaluation.nearest`)."""
+(`model.kernels`' kNN graph, `registration`'s ICP, `evaluation.nearest`)."""
 from __future__ import annotations
 
 import numba

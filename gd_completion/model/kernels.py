@@ -21,6 +21,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from gd_completion.cell_grid import bucket_by_cell
+
 _INF = np.float32(np.inf)
 FPS_LEAF = 32   # points per leaf of the pruned FPS (on the merge's ~3,000 points, 24 to 40 were within 5 %)
 
@@ -274,27 +276,20 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
         dims[a] = int((hi[a] - lo[a]) / c) + 1
         cells *= dims[a]
     cell_of = np.empty(n, np.int64)
-    start = np.zeros(cells + 1, np.int64)
-    for j in range(n):   # counting sort of the ref points by cell
+    for j in range(n):
         ix = min(int((ref[j, 0] - lo[0]) / c), dims[0] - 1)
         iy = min(int((ref[j, 1] - lo[1]) / c), dims[1] - 1)
         iz = min(int((ref[j, 2] - lo[2]) / c), dims[2] - 1)
         cell_of[j] = (ix * dims[1] + iy) * dims[2] + iz
-        start[cell_of[j] + 1] += 1
+    start, ridx = bucket_by_cell(cell_of, cells)   # the ref points sorted by cell
     pairs = 0   # point pairs sharing a cell: the grid's work grows with it
     for i in range(cells):
-        pairs += start[i + 1] * start[i + 1]
-        start[i + 1] += start[i]
+        pairs += (start[i + 1] - start[i]) ** 2
     if pairs > 64 * (n + q):
         return   # a far outlier packed the cloud into a few cells: the window search is cheaper
-    fill = start[:-1].copy()
     rs = np.empty((n, 3), np.float32)
-    ridx = np.empty(n, np.int64)
-    for j in range(n):
-        p = fill[cell_of[j]]
-        fill[cell_of[j]] += 1
-        rs[p] = ref[j]
-        ridx[p] = j
+    for p in range(n):
+        rs[p] = ref[ridx[p]]
     within = margin * margin * np.float32(1.0 - 1e-5)   # all k inside the window, with room for rounding
     shrink = 1.0 - 1e-5
     # absolute float64 error of a query's distance to a cell border (its cell index and the border are
