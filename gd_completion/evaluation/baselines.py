@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from gd_completion.merge import merge_with_fed, mirrored
 from gd_completion.model.network import GGDNet, box_shape
-from gd_completion.preprocess import network_input
+from gd_completion.preprocess import resample_indices
 
 # Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s); "box_fill",
 # "template" and "mirror_template" are the box-only priors of `priors` (no learning); "ggd" is the network's
@@ -42,16 +43,19 @@ def _as_batch(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray]) -> tupl
         return torch.from_numpy(partial.astype(np.float32)), False
     single = isinstance(partial, np.ndarray) and partial.ndim == 2
     clouds = [partial] if single else list(partial)
-    return torch.from_numpy(_resampled(clouds, model.config.num_input)), single
+    return torch.from_numpy(_resampled(clouds, model.config.num_input)[0]), single
 
 
-def _resampled(clouds: Sequence[np.ndarray], n: int) -> np.ndarray:
-    """(B, n, 3) float32: each cloud brought to `n` points the way the pipeline does (FPS down, cycle up)."""
+def _resampled(clouds: Sequence[np.ndarray], n: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(B, n, 3) float32: each cloud brought to `n` points the way the pipeline does (FPS down, cycle up), and
+    per cloud the rows it took (`preprocess.resample_indices`)."""
     clouds = [np.asarray(c, dtype=np.float32).reshape(-1, 3) for c in clouds]
     empty = [i for i, c in enumerate(clouds) if len(c) == 0]
     if empty:
         raise ValueError(f"cannot complete empty clouds (indices {empty})")
-    return np.stack([network_input(c, n) for c in clouds])
+    rows = [resample_indices(len(c), c, n) for c in clouds]
+    batch = np.stack([c[r] for c, r in zip(clouds, rows)]) if clouds else np.zeros((0, n, 3), np.float32)
+    return batch, rows
 
 
 def _shapes(sizes: np.ndarray | Sequence[Sequence[float]] | None, count: int) -> torch.Tensor | None:
@@ -97,8 +101,7 @@ def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
     if isinstance(partials, np.ndarray) and partials.ndim == 3 and partials.shape[1] == model.config.num_input:
         batch = partials.astype(np.float32, copy=False)
     else:
-        batch = _resampled(list(partials), model.config.num_input) if len(partials) else np.zeros(
-            (0, model.config.num_input, 3), np.float32)
+        batch = _resampled(list(partials), model.config.num_input)[0]
     shapes = _shapes(sizes, len(batch))
     generated, completion = [], []
     for start in range(0, len(batch), max_batch):
@@ -112,8 +115,22 @@ def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
     return np.concatenate(generated), np.concatenate(completion)
 
 
-def merged_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray], completion: np.ndarray) -> np.ndarray:
-    """(B, N_o, 3): each completion after the measured merge with the points its partial fed the network, as
-    the pipeline publishes it (`merge.merge_with_fed`)."""
-    merged = [merge_with_fed(c, p, model.config.num_input).points for p, c in zip(partials, completion)]
-    return np.stack(merged) if merged else np.zeros((0, model.config.num_output, 3), np.float32)
+@dataclass(frozen=True)
+class NetworkOutputs:
+    """The network methods' outputs for a batch of partial clouds, each (B, N_o, 3) float32."""
+
+    generated: np.ndarray   # generation-only branch P_g
+    completion: np.ndarray  # GGD-Net P_o
+    published: np.ndarray   # P_o after the measured merge, as the pipeline publishes it
+
+
+def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
+                      sizes: np.ndarray | Sequence[Sequence[float]] | None = None, max_batch: int = 32
+                      ) -> NetworkOutputs:
+    """`network_outputs` of partial clouds of any size and their completions after the measured merge with the
+    points each partial fed the network (`merge.merge_with_fed`, the rows of its one resampling)."""
+    partials = [np.asarray(p, np.float32).reshape(-1, 3) for p in partials]
+    batch, rows = _resampled(partials, model.config.num_input)
+    generated, completion = network_outputs(model, batch, sizes, max_batch=max_batch)
+    merged = [merge_with_fed(c, p, model.config.num_input, r).points for p, c, r in zip(partials, completion, rows)]
+    return NetworkOutputs(generated, completion, np.stack(merged) if merged else completion.copy())

@@ -14,7 +14,7 @@ from gd_completion.geometry import box_problem, finite_mask
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
 
-from .baselines import merged_outputs, network_outputs
+from .baselines import published_outputs
 from .metrics import CD_SCALE, COVERAGE_SCALE, chamfer, coverage_error
 from .pandaset_eval import (
     MIN_INPUT_POINTS,
@@ -231,14 +231,13 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
     # both clouds are normalised by the frame's own box (the fused partial by the current box): its sizes
     # (the published completion: the network's after the measured merge, as the pipeline gives it)
     fused_in = [chosen[i].fused[p] for i, p in fused_keys]
-    _, fused_out = network_outputs(model, fused_in, np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(
-        -1, 3), max_batch=max_batch)
+    fused = published_outputs(model, fused_in, np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(-1, 3),
+                              max_batch=max_batch)
     single_in = [chosen[i].single[p] for i, p in single_keys]
-    _, single_out = network_outputs(model, single_in, np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(
+    single = published_outputs(model, single_in, np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(
         -1, 3), max_batch=max_batch)
-    fused_done = dict(zip(fused_keys, merged_outputs(model, fused_in, fused_out)))
-    single_done = dict(zip(single_keys, merged_outputs(model, single_in, single_out)))
-    fused_network, single_network = dict(zip(fused_keys, fused_out)), dict(zip(single_keys, single_out))
+    fused_done, single_done = dict(zip(fused_keys, fused.published)), dict(zip(single_keys, single.published))
+    fused_network, single_network = dict(zip(fused_keys, fused.completion)), dict(zip(single_keys, single.completion))
     seconds["network"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()

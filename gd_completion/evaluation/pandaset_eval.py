@@ -16,7 +16,7 @@ from gd_completion.geometry import Box3D, box_problem, finite_mask, normalize
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import Preprocessing, crop_vehicles
 
-from .baselines import BASELINE_NAMES, merged_outputs, mirror_symmetry, network_outputs
+from .baselines import BASELINE_NAMES, mirror_symmetry, published_outputs
 from .box_noise import BoxNoise, noisy_box, reframe
 from .metrics import COVERAGE_SCALE, FIDELITY_SCALE
 from .nearest import nearest_sq
@@ -282,15 +282,12 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     t2 = time.perf_counter()
     partials = [t.points[k] for t, k in meta]
     sizes = np.array([t.boxes[k].size for t, k in meta], np.float64).reshape(-1, 3)
-    generated, completion = network_outputs(model, partials, sizes, max_batch=max_batch)
-    merged = merged_outputs(model, partials, completion)
+    clean = published_outputs(model, partials, sizes, max_batch=max_batch)
     noisy_meta = [i for i, (t, k) in enumerate(meta) if noise is not None and t.noisy[k] is not None]
     noisy_in = [meta[i][0].noisy[meta[i][1]] for i in noisy_meta]
-    noisy_gen, noisy_out = network_outputs(model, [p for p, _ in noisy_in],
-                                           np.array([b.size for _, b in noisy_in], np.float64).reshape(-1, 3),
-                                           max_batch=max_batch)
-    noisy_merged = merged_outputs(model, [p for p, _ in noisy_in], noisy_out)
-    noisy_nets = {i: (noisy_gen[j], noisy_out[j], noisy_merged[j]) for j, i in enumerate(noisy_meta)}
+    noisy = published_outputs(model, [p for p, _ in noisy_in],
+                              np.array([b.size for _, b in noisy_in], np.float64).reshape(-1, 3), max_batch=max_batch)
+    noisy_nets = {i: (noisy.generated[j], noisy.completion[j], noisy.published[j]) for j, i in enumerate(noisy_meta)}
     seconds["network"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()
@@ -299,7 +296,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     for i, (track, k) in enumerate(meta):
         partial, box = track.points[k], track.boxes[k]
         ref_random, ref_voxel, images = refs[track.uuid]
-        outputs = _method_outputs(partial, box.size, n_out, generated[i], completion[i], merged[i])
+        outputs = _method_outputs(partial, box.size, n_out, clean.generated[i], clean.completion[i],
+                                   clean.published[i])
         item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], len(partial),
                             size_bin(len(partial)), {}, {})
         for name in BASELINE_NAMES:
@@ -325,8 +323,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     if noise is not None and len(noisy_meta) < len(meta):
         notes.append(f"box noise: {len(meta) - len(noisy_meta)} observations had no point in the noisy box and are "
                      "left out of the box-noise table (their clean figures too)")
-    examples = _examples(items, meta, merged, refs, n_examples)
-    worst = _worst(items, meta, merged, refs, n_examples)
+    examples = _examples(items, meta, clean.published, refs, n_examples)
+    worst = _worst(items, meta, clean.published, refs, n_examples)
     return PandaSetResult(items, len(refs), n_candidates, max_frames_per_vehicle, seconds, examples, notes, worst,
                           sensors, noise, random_points, reference_points)
 

@@ -15,7 +15,7 @@ from gd_completion.model.checkpoint import load_model
 from gd_completion.model.network import GGDNet
 from gd_completion.synth.dataset import build_dataset, load_dataset
 
-from .baselines import BASELINE_NAMES, merged_outputs, mirror_symmetry, network_outputs
+from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs, published_outputs
 from .metrics import (
     CD_SCALE,
     FIDELITY_SCALE,
@@ -157,13 +157,14 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
     partial = np.asarray(partial, np.float32)
     complete = np.asarray(complete, np.float32)
     sizes = np.asarray(sizes, np.float64).reshape(-1, 3)
-    generated, completion = network_outputs(model, partial, sizes, max_batch=max_batch)
+    networks = published_outputs(model, list(partial), sizes, max_batch=max_batch)
+    completion = networks.completion
     n_out = model.config.num_output
     mirror, template = mirror_symmetry(partial), template_points(sizes, n_out)
     outputs = {"input": partial, "mirror": mirror, "box_fill": box_fill(sizes, n_out), "template": template,
                "mirror_template": np.stack([thinned_union([m, t], n_out) for m, t in zip(mirror, template)])
                if len(partial) else np.zeros((0, n_out, 3), np.float32),
-               "generation": generated, "ggd": completion, "ggd_merge": merged_outputs(model, partial, completion)}
+               "generation": networks.generated, "ggd": completion, "ggd_merge": networks.published}
     result: dict[str, dict[str, float]] = {}
     observed = observed_mask(complete, partial)
     observed_fraction = float("nan")
