@@ -325,6 +325,25 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
         load_heldout(2, path=tmp_path / "nosize.npz")
 
 
+def test_heldout_mesh_set_draws_only_the_heldout_meshes(shared_data, tmp_path):
+    from gd_completion.errors import EvaluationError
+    from gd_completion.evaluation.synthetic import load_heldout_meshes
+    from gd_completion.synth.dataset import build_dataset
+    from gd_completion.synth.meshio import HELDOUT_MESHES
+
+    meshes = shared_data / "vehicle-meshes"
+    held = load_heldout_meshes(3, meshes, seed=5)
+    data = build_dataset(3, 5, meshes_dir=meshes, mesh_fraction=1.0, only_meshes=HELDOUT_MESHES)
+    # every pair a mesh shape, drawn from the list of the held-out meshes alone ("mesh:<index in that list>")
+    assert all(k.startswith("mesh:") and int(k[5:]) < len(HELDOUT_MESHES) for k in data["kind"]), data["kind"]
+    np.testing.assert_array_equal(held.partial, data["partial"])
+    np.testing.assert_array_equal(held.complete, data["complete"])
+    np.testing.assert_array_equal(held.sizes, np.asarray(data["size"], np.float64))
+    assert held.surface.shape == held.complete.shape and "held-out meshes of vehicle-meshes" in held.source
+    with pytest.raises(EvaluationError, match="held-out meshes"):
+        load_heldout_meshes(1, tmp_path)
+
+
 def test_evaluate_command_skips_missing_pandaset(tmp_path, capsys):
     import argparse
 

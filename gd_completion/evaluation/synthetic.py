@@ -10,7 +10,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from torch import Tensor
 
-from gd_completion.errors import EvaluationError
+from gd_completion.errors import DataFormatError, EvaluationError
 from gd_completion.model.checkpoint import load_model
 from gd_completion.model.network import GGDNet
 from gd_completion.synth.dataset import build_dataset, load_dataset
@@ -119,22 +119,25 @@ def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path 
 
 def load_heldout_meshes(n_samples: int, mesh_dir: str | Path, *, seed: int = EVAL_SEED) -> HeldOut:
     """Pairs made from the held-out meshes only (`synth.meshio.HELDOUT_MESHES` of `mesh_dir`, never trained
-    on): `make_sample(sample_rng(seed, i), those meshes, surface_resample=True)` for i < n_samples."""
-    from gd_completion.synth.dataset import make_sample, sample_rng
+    on): `build_dataset` with every shape drawn from those meshes."""
     from gd_completion.synth.meshio import HELDOUT_MESHES, load_mesh_folder
 
     if not Path(mesh_dir).is_dir():
         raise EvaluationError(f"mesh folder {mesh_dir}: not a directory")
-    meshes = load_mesh_folder(mesh_dir, only=HELDOUT_MESHES)
-    if len(meshes) != len(HELDOUT_MESHES):
-        raise EvaluationError(f"{mesh_dir}: {len(meshes)} of the {len(HELDOUT_MESHES)} held-out meshes found")
-    samples = [make_sample(sample_rng(seed, i), meshes, surface_resample=True) for i in range(n_samples)]
-    if not samples:
+    try:
+        found = len(load_mesh_folder(mesh_dir, only=HELDOUT_MESHES))
+    except DataFormatError as exc:
+        raise EvaluationError(f"held-out meshes: {exc}") from exc
+    if found != len(HELDOUT_MESHES):
+        raise EvaluationError(f"{mesh_dir}: {found} of the {len(HELDOUT_MESHES)} held-out meshes found")
+    if n_samples < 1:
         raise EvaluationError("no held-out mesh samples requested")
-    return HeldOut(np.stack([p for p, _, _ in samples]), np.stack([g for _, g, _ in samples]),
-                   f"the {len(meshes)} held-out meshes of {Path(mesh_dir).name} ({', '.join(HELDOUT_MESHES)}), "
-                   f"seed {seed}", np.stack([m["surface_resample"] for _, _, m in samples]),
-                   np.array([m["size"] for _, _, m in samples], np.float64).reshape(-1, 3))
+    data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, mesh_fraction=1.0, only_meshes=HELDOUT_MESHES,
+                         surface_resample=True)
+    partial, complete = _pairs(data, "build_dataset")
+    where = f"the {found} held-out meshes of {Path(mesh_dir).name} ({', '.join(HELDOUT_MESHES)}), seed {seed}"
+    return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32),
+                   _sizes(data, len(partial), where))
 
 
 def _chamfer_row(output: np.ndarray, complete: np.ndarray) -> tuple[dict[str, float], Tensor]:

@@ -366,8 +366,8 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
     With `meshes_dir`, a fraction `mesh_fraction` of the shapes come from that folder's meshes, the rest
     are procedural. The folder's meshes named (file stem) in `exclude_meshes` are left out: by default
     `meshio.HELDOUT_MESHES` (never train on the evaluation's shapes), or nothing when `only_meshes` is given
-    (`only_meshes=HELDOUT_MESHES` draws the held-out meshes alone; the evaluation's held-out mesh set is
-    `evaluation.synthetic.load_heldout_meshes`, every pair a mesh shape). Returns arrays `partial` (S,n_input,3),
+    (`only_meshes=HELDOUT_MESHES` with `mesh_fraction=1` draws every shape from the held-out meshes: the
+    evaluation's held-out mesh set, `evaluation.synthetic.load_heldout_meshes`). Returns arrays `partial` (S,n_input,3),
     `complete` (S,n_gt,3) float32, `n_points`, `size` (S,3) (of the box used, noisy or not), `true_size`
     (S,3), `box_noise` (S,7), `distance`, `yaw`, `label`, `kind`, `pattern`, and a `metadata` dict holding
     everything that shaped the data (metadata["sample_options"] is `options.to_dict()`); with
