@@ -78,7 +78,7 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 class _Track:
     """One track: its last box and stamp, its frames (newest last) in metres in the box frame."""
 
-    __slots__ = ("box", "correction_sum", "frames", "frames_seen", "last_ns", "points")
+    __slots__ = ("_concatenated", "box", "correction_sum", "frames", "frames_seen", "last_ns", "points")
 
     def __init__(self, box: Box3D, stamp_ns: int) -> None:
         self.box = box
@@ -87,20 +87,26 @@ class _Track:
         self.points = 0
         self.correction_sum = np.zeros(3)  # (yaw, tx, ty) of the frames' alignments, summed
         self.frames_seen = 0               # frames added since the track started (dropped ones included)
+        self._concatenated: np.ndarray | None = None   # `metres()` until the frames change
 
     def add(self, metres: np.ndarray, limits: FusionLimits) -> None:
         if len(metres) > limits.max_points_per_track:   # one frame alone over the bound: evenly thinned
             keep = np.linspace(0, len(metres) - 1, limits.max_points_per_track).round().astype(np.intp)
             metres = metres[keep]
         self.frames.append(metres)
+        self._concatenated = None
         self.points += len(metres)
         while len(self.frames) > 1 and (self.points > limits.max_points_per_track
                                         or len(self.frames) > limits.max_frames_per_track):
             self.points -= len(self.frames.popleft())
 
     def metres(self) -> np.ndarray:
-        """(P, 3) float32: every frame's points in metres in the track's frame, oldest frame first."""
-        return np.concatenate(list(self.frames)) if self.frames else np.zeros((0, 3), np.float32)
+        """(P, 3) float32: every frame's points in metres in the track's frame, oldest frame first (built once
+        per change of the frames: the fused partial of one update is the alignment target of the next)."""
+        if self._concatenated is None:
+            self._concatenated = np.concatenate(list(self.frames)) if self.frames else np.zeros((0, 3), np.float32)
+            self._concatenated.flags.writeable = False   # shared by the callers until the next frame
+        return self._concatenated
 
     def fused_normalized(self) -> np.ndarray:
         """(P, 3) float32: every frame's points, oldest frame first, divided by the current length."""
