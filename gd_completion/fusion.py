@@ -44,7 +44,7 @@ from gd_completion.limits import check_positive_fields
 from gd_completion.preprocess import CroppedVehicle
 from gd_completion.registration import AlignSettings, PlanarTransform, align_planar
 
-__all__ = ["FusionLimits", "TrackFusion", "voxel_downsample"]
+__all__ = ["FusionLimits", "TrackFusion", "voxel_downsample", "voxel_first_indices"]
 
 
 @dataclass(frozen=True)
@@ -66,13 +66,17 @@ class FusionLimits:
         check_positive_fields(self, skip=("align",))
 
 
+def voxel_first_indices(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """Ascending indices of the first point (in input order) of each `voxel_size` voxel of `points` (M, 3)."""
+    if len(points) == 0:
+        return np.zeros(0, np.intp)
+    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel_size)   # integer-valued, no overflow
+    return np.sort(np.unique(keys, axis=0, return_index=True)[1])
+
+
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """The first point (in input order) of each `voxel_size` voxel of `points` (M, 3), order kept."""
-    if len(points) == 0:
-        return points
-    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel_size)   # integer-valued, no overflow
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return points[np.sort(first)]
+    return points[voxel_first_indices(points, voxel_size)]
 
 
 class _Track:
@@ -89,8 +93,11 @@ class _Track:
         self.frames_seen = 0               # frames added since the track started (dropped ones included)
         self._concatenated: np.ndarray | None = None   # `metres()` until the frames change
 
-    def add(self, metres: np.ndarray, limits: FusionLimits) -> None:
-        if len(metres) > limits.max_points_per_track:   # one frame alone over the bound: evenly thinned
+    def add(self, metres: np.ndarray, limits: FusionLimits) -> np.ndarray:
+        """Store a frame's points (dropping the oldest frames beyond the bounds); returns the rows of `metres`
+        stored (all of them unless the frame alone is over `max_points_per_track`: then evenly thinned)."""
+        keep = np.arange(len(metres))
+        if len(metres) > limits.max_points_per_track:
             keep = np.linspace(0, len(metres) - 1, limits.max_points_per_track).round().astype(np.intp)
             metres = metres[keep]
         self.frames.append(metres)
@@ -99,6 +106,7 @@ class _Track:
         while len(self.frames) > 1 and (self.points > limits.max_points_per_track
                                         or len(self.frames) > limits.max_frames_per_track):
             self.points -= len(self.frames.popleft())
+        return keep
 
     def metres(self) -> np.ndarray:
         """(P, 3) float32: every frame's points in metres in the track's frame, oldest frame first (built once
@@ -142,7 +150,8 @@ class TrackFusion:
     def update(self, stamp_ns: int, vehicles: Sequence[CroppedVehicle]) -> list[CroppedVehicle]:
         """Add each vehicle (keyed by `box.instance_id`) to its track; return, in the same order, the vehicles
         with `normalized` the track's fused partial in the current box's normalised frame (oldest frame first;
-        the current frame last, its `current_rows` rows). `measured` and `box` stay the current frame's."""
+        the current frame last: its rows `current_source` of `measured`). `measured` and `box` stay the current
+        frame's."""
         stamp_ns = int(stamp_ns)
         with self._lock:
             self._restart_if_time_went_back(stamp_ns)
@@ -155,10 +164,10 @@ class TrackFusion:
                     continue
                 seen.add(key)
                 fused, current = self._add(stamp_ns, vehicle)
-                out.append(replace(vehicle, normalized=fused, current_rows=current))
+                out.append(replace(vehicle, normalized=fused, current_source=current))
             return out
 
-    def _add(self, stamp_ns: int, vehicle: CroppedVehicle) -> tuple[np.ndarray, int]:
+    def _add(self, stamp_ns: int, vehicle: CroppedVehicle) -> tuple[np.ndarray, np.ndarray]:
         key, box = vehicle.box.instance_id, vehicle.box
         track = self._tracks.pop(key, None)
         if track is not None and stamp_ns - track.last_ns > self.limits.expiry_s * 1e9:
@@ -171,7 +180,8 @@ class TrackFusion:
             track = _Track(box, stamp_ns)
         track.box, track.last_ns = box, stamp_ns
         metres = np.asarray(vehicle.normalized, dtype=np.float32).reshape(-1, 3) * np.float32(box.size[0])
-        metres = voxel_downsample(metres, self.limits.voxel_size)
+        kept = voxel_first_indices(metres, self.limits.voxel_size)
+        metres = metres[kept]
         if self.limits.align is not None and track.frames and len(metres):
             transform = align_planar(metres, track.metres(), self.limits.align)
             if transform is None:
@@ -181,13 +191,13 @@ class TrackFusion:
                 self._aligned += 1
                 track.correction_sum += (transform.yaw, transform.tx, transform.ty)
         track.frames_seen += 1
-        track.add(metres, self.limits)
+        kept = kept[track.add(metres, self.limits)]
         self._tracks[key] = track
         fused = track.fused_normalized()
         while len(self._tracks) > self.limits.max_tracks:
             self._tracks.popitem(last=False)
             self._evicted += 1
-        return fused, len(track.frames[-1])
+        return fused, kept
 
     def _restart_if_time_went_back(self, stamp_ns: int) -> int:
         """Drop every track when `stamp_ns` is earlier than the latest stamp seen; returns how many."""

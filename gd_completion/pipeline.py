@@ -16,7 +16,7 @@ import torch
 
 from gd_completion.errors import DeviceError
 from gd_completion.fusion import TrackFusion
-from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask
+from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask, normalize
 from gd_completion.limits import FrameLimits, screen_boxes
 from gd_completion.merge import merge_with_fed
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
@@ -245,8 +245,9 @@ class VehicleCompleter:
         Per vehicle the output holds its measured points (`include_input_points`; generated=0) and its
         completion's points (generated=1). With `measured_merge` the completion holds some of the measured
         points: those are published once, with generated=0 (left out of the completion when the measured
-        points are published); with track fusion but without `publish_fused_points`, the completion's points
-        from the track's earlier frames count as generated=1. The settings are read once per frame."""
+        points are published; without them, they keep this frame's measured coordinates, not those of the
+        track's placement); with track fusion but without `publish_fused_points`, the completion's points from
+        the track's earlier frames count as generated=1. The settings are read once per frame."""
         stats = FrameStats()
         deadline = time.monotonic() + self.limits.time_budget_s
         include, merge, fused_points = self.include_input_points, self.measured_merge, self.publish_fused_points
@@ -270,6 +271,10 @@ class VehicleCompleter:
             own = row >= own_from
             if include:   # published below with the measured points
                 completion, own = completion[~own], own[~own]
+            elif vehicle.current_source is not None and not fused_points and own.any():
+                # this frame's points where it measured them, not where its track placed them
+                completion = completion.copy()
+                completion[own] = normalize(vehicle.measured[vehicle.current_source[row[own] - own_from]], vehicle.box)
             source = np.where(own, 0, 1).astype(np.uint8)
             if not include:
                 measured = np.zeros((0, 3), np.float32)

@@ -59,7 +59,14 @@ class CroppedVehicle:
     box: Box3D
     measured: np.ndarray    # (M, 3) float32, cloud frame
     normalized: np.ndarray  # (M, 3) float32, box frame divided by the length
-    current_rows: int | None = None   # track fusion: `normalized` is the fused partial, its last rows this frame's
+    # track fusion: `normalized` is the track's fused partial; its last len(current_source) rows are this frame's
+    # points `measured[current_source]` (as the track stored them: voxel-thinned, aligned, in its mean placement)
+    current_source: np.ndarray | None = None
+
+    @property
+    def current_rows(self) -> int | None:
+        """Track fusion: how many of the last rows of `normalized` are this frame's points (None: no fusion)."""
+        return None if self.current_source is None else len(self.current_source)
 
 
 def above_ground(normalized: np.ndarray, box: Box3D, ground_clearance: float) -> np.ndarray:

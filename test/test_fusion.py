@@ -139,6 +139,42 @@ def test_box_jitter_is_aligned() -> None:
     assert plain > 0.01 and aligned < 0.008 and aligned < plain / 2   # metres, median
 
 
+def test_current_source_names_the_measured_rows_of_this_frame() -> None:
+    """The fused partial's last rows are this frame's points after voxel thinning and the per-frame bound:
+    `current_source` gives the row of `measured` each one came from."""
+    fusion = TrackFusion(FusionLimits(align=None, max_points_per_track=30))
+    first = np.concatenate([distinct(10), distinct(10, start=0.001)])      # second half: same voxels, dropped
+    (v1,) = fusion.update(0, [vehicle(4, first)])
+    np.testing.assert_array_equal(v1.current_source, np.arange(10))
+    assert v1.current_rows == 10 and len(v1.normalized) == 10
+    second = distinct(60, start=2.0)                                        # alone over the bound: thinned to 30
+    (v2,) = fusion.update(1, [vehicle(4, second)])
+    assert v2.current_rows == 30 and len(v2.normalized) == 30               # the first frame dropped
+    np.testing.assert_allclose(v2.normalized[-30:] * SIZE[0], second[v2.current_source], atol=1e-5)
+    assert v2.current_source[0] == 0 and v2.current_source[-1] == 59 and np.all(np.diff(v2.current_source) > 0)
+
+
+def test_own_points_keep_their_measured_place_without_include_input_points() -> None:
+    """Track fusion with alignment, include_input_points off: the completion's copies of this frame's points
+    (generated=0) are published where this frame measured them, not in the track's mean placement (a few
+    centimetres off under box jitter)."""
+    from test_registration import seen_part
+
+    rng = np.random.default_rng(5)
+    car = Box3D((12.0, 4.0, -0.8), SIZE, 0.4, "car", 9)
+    completer = VehicleCompleter(load_model(DEFAULT_WEIGHTS), preprocessing=Preprocessing(ground_clearance=0.0),
+                                 fusion=TrackFusion(), include_input_points=False)
+    for k in range(6):
+        dx, dy, dyaw = *rng.normal(0, 0.05, 2), np.radians(rng.normal(0, 1.5))
+        box = replace(car, center=(12.0 + dx, 4.0 + dy, -0.8), yaw=0.4 + dyaw)
+        cloud = to_cloud(seen_part(np.random.default_rng(20 + k), 800), car)
+        result = completer.complete_frame(cloud, [box], stamp_ns=k * SECOND // 10)
+    own = result.points[result.generated == 0].astype(np.float64)
+    gaps = np.min(np.linalg.norm(own[:, None, :] - cloud[None, :, :].astype(np.float64), axis=-1), axis=1)
+    assert completer.fusion.counters["frames_aligned"] >= 4 and len(own) > 20
+    assert gaps.max() < 1e-4   # metres: this frame's measured points (before: up to the box's jitter off)
+
+
 def test_voxel_downsampling_keeps_first_point_per_voxel() -> None:
     pts = np.array([[0.001, 0, 0], [0.5, 0, 0], [0.015, 0.005, 0.0], [0.021, 0, 0], [0.51, 0, 0]], np.float32)
     np.testing.assert_array_equal(voxel_downsample(pts, 0.02), pts[[0, 1, 3]])
