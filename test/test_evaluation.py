@@ -285,6 +285,8 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     pandaset = text.split("## PandaSet 002: single")[1].split("## PandaSet 002: track fusion")[0]
     pandaset_rows = [line for line in pandaset.splitlines() if line.startswith("| raw input")]
     assert len(pandaset_rows) == 6   # random and voxel coverage, fidelity, two-sided, by sensor, box noise
+    oracle = [cells(line) for line in pandaset.splitlines() if line.startswith("| (oracle)")]
+    assert len(oracle) == 1 and float(oracle[0][1]) < float(oracle[0][2])   # the noisy box misplaces it
     fidelity_rows = [line for line in pandaset.split("### Fidelity")[1].splitlines() if line.startswith("| ")]
     assert cells(fidelity_rows[1])[0] == "raw input" and cells(fidelity_rows[1])[1] == "0.000"  # faithful to itself
     assert float(cells(pandaset_rows[0])[2]) > 0.0
@@ -323,6 +325,18 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     from gd_completion.errors import EvaluationError
     with pytest.raises(EvaluationError, match="no per-sample box sizes"):
         load_heldout(2, path=tmp_path / "nosize.npz")
+
+
+def test_placement_floor_hand_computed():
+    from gd_completion.evaluation.pandaset_eval import placement_floor
+    from gd_completion.geometry import Box3D, normalize
+
+    box = Box3D((10.0, 5.0, 0.0), (4.0, 2.0, 1.5), 0.3, "car", 1)
+    shifted = Box3D((10.0 + 0.1 * np.cos(0.3), 5.0 + 0.1 * np.sin(0.3), 0.0), (4.0, 2.0, 1.5), 0.3, "car", 1)
+    perfect = normalize(np.array([[10.0, 5.0, 0.0], [11.0, 5.5, 0.3]]), box)
+    assert placement_floor(perfect, perfect, box, box) < 1e-9
+    # placed by a box 0.1 m ahead along its heading: every point 0.1 m / 4 m off, x1e3
+    assert placement_floor(perfect, perfect, shifted, box) == pytest.approx((0.1 / 4.0) ** 2 * 1e3, rel=1e-4)
 
 
 def test_heldout_mesh_set_draws_only_the_heldout_meshes(shared_data, tmp_path):

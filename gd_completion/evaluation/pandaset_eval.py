@@ -154,6 +154,14 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
     return tracks
 
 
+def placement_floor(reference: np.ndarray, perfect: np.ndarray, placed_by: Box3D, true_box: Box3D) -> float:
+    """Coverage error x1e3 of a perfect completion placed by a box: `perfect` (points of the vehicle's own
+    aggregate, normalised by `true_box`) taken as if it were normalised by `placed_by`, back in `true_box`'s
+    frame, against `reference`. With a noisy `placed_by` this is what any method loses that gets the shape
+    right but trusts the box's placement (not a method: it uses the reference)."""
+    return float(nearest_sq(reference, reframe(perfect, placed_by, true_box)).mean()) * COVERAGE_SCALE
+
+
 def multi_frame_reference(track: VehicleTrack | Any, n: int = REFERENCE_POINTS) -> np.ndarray | None:
     """The track's multi-frame aggregate (`aggregate()` of a track with `frames` and `instance_id`) sampled to
     `n` near-uniform points (seeded by the track), or None for a vehicle seen in a single frame."""
@@ -195,7 +203,8 @@ class PandaSetItem:
 
     coverage: random reference; coverage_voxel: voxel-uniform reference; noisy_coverage: the box-noise run
     (random reference, clean box's frame; NaN when the noisy crop was empty); precision, judged, recall,
-    f_score: the two-sided metric of `observed` (fractions)."""
+    f_score: the two-sided metric of `observed` (fractions); placement_floor: `placement_floor` of the exact and
+    the noisy box (box-noise run only)."""
 
     uuid: str
     label: str
@@ -212,6 +221,7 @@ class PandaSetItem:
     f_score: dict[str, float] = field(default_factory=dict)
     noisy_coverage: dict[str, float] = field(default_factory=dict)
     output_points: dict[str, int] = field(default_factory=dict)
+    placement_floor: tuple[float, float] | None = None   # (exact box, noisy box): see `placement_floor`
 
 
 @dataclass
@@ -262,6 +272,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     notes: list[str] = []
     meta: list[tuple[VehicleTrack, int]] = []
     refs: dict[str, tuple[np.ndarray, np.ndarray, RangeImages]] = {}
+    perfect: dict[str, np.ndarray] = {}
     single_frame = 0
     for track in tracks.values():
         picks = track.input_frames(MIN_INPUT_POINTS, max_frames_per_vehicle)
@@ -274,6 +285,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
         aggregate = track.aggregate()
         refs[track.uuid] = (random_reference(aggregate, random_points, seed=track.instance_id), voxel,
                             range_images(track.pose_scans()))
+        if noise is not None:   # a perfect completion: the aggregate itself (another random sample of it)
+            perfect[track.uuid] = random_reference(aggregate, model.config.num_output, seed=track.instance_id + 1)
         meta += [(track, k) for k in picks]
     if single_frame:
         notes.append(f"{single_frame} vehicles seen in a single frame only were left out (no multi-frame reference)")
@@ -318,6 +331,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             for j, name in enumerate(BASELINE_NAMES):
                 out = stacked[bounds[j]:bounds[j + 1]]
                 item.noisy_coverage[name] = float(nearest_sq(ref_random, out).mean()) * COVERAGE_SCALE
+            item.placement_floor = (placement_floor(ref_random, perfect[track.uuid], box, box),
+                                    placement_floor(ref_random, perfect[track.uuid], shaken, box))
         items.append(item)
     seconds["metrics"] = time.perf_counter() - t3
     if noise is not None and len(noisy_meta) < len(meta):
