@@ -124,10 +124,11 @@ def completer(model: str | Path | None = None, *, device: str = "cpu", threads: 
     key = (str(Path(model).resolve()) if model else "", device, int(threads), min_points, bool(include_input_points))
     with _completers_lock:
         if key not in _completers:
+            from gd_completion.limits import OFFLINE_LIMITS
             from gd_completion.pipeline import VehicleCompleter
-            _completers[key] = VehicleCompleter.from_checkpoint(
+            _completers[key] = VehicleCompleter.from_checkpoint(   # offline: no time budget, every box completed
                 model, device=device, num_threads=threads or None, min_points=min_points,
-                include_input_points=include_input_points)
+                include_input_points=include_input_points, limits=OFFLINE_LIMITS)
         return _completers[key]
 
 
