@@ -42,7 +42,7 @@ import numpy as np
 from gd_completion.geometry import Box3D, denormalize
 from gd_completion.limits import check_positive_fields
 from gd_completion.preprocess import CroppedVehicle
-from gd_completion.registration import AlignSettings, PlanarTransform, align_planar
+from gd_completion.registration import AlignSettings, PlanarTransform, align_planar, strided_indices
 
 __all__ = ["FusionLimits", "TrackFusion", "voxel_downsample", "voxel_first_indices"]
 
@@ -82,7 +82,7 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 class _Track:
     """One track: its last box and stamp, its frames (newest last) in metres in the box frame."""
 
-    __slots__ = ("_concatenated", "box", "correction_sum", "frames", "frames_seen", "last_ns", "points")
+    __slots__ = ("box", "correction_sum", "frames", "frames_seen", "last_ns", "points", "target")
 
     def __init__(self, box: Box3D, stamp_ns: int) -> None:
         self.box = box
@@ -91,17 +91,15 @@ class _Track:
         self.points = 0
         self.correction_sum = np.zeros(3)  # (yaw, tx, ty) of the frames' alignments, summed
         self.frames_seen = 0               # frames added since the track started (dropped ones included)
-        self._concatenated: np.ndarray | None = None   # `metres()` until the frames change
+        self.target: np.ndarray | None = None   # the alignment target: evenly strided points of the frames
 
     def add(self, metres: np.ndarray, limits: FusionLimits) -> np.ndarray:
         """Store a frame's points (dropping the oldest frames beyond the bounds); returns the rows of `metres`
         stored (all of them unless the frame alone is over `max_points_per_track`: then evenly thinned)."""
-        keep = np.arange(len(metres))
-        if len(metres) > limits.max_points_per_track:
-            keep = np.linspace(0, len(metres) - 1, limits.max_points_per_track).round().astype(np.intp)
+        keep = strided_indices(len(metres), limits.max_points_per_track)
+        if len(keep) < len(metres):
             metres = metres[keep]
         self.frames.append(metres)
-        self._concatenated = None
         self.points += len(metres)
         while len(self.frames) > 1 and (self.points > limits.max_points_per_track
                                         or len(self.frames) > limits.max_frames_per_track):
@@ -109,16 +107,13 @@ class _Track:
         return keep
 
     def metres(self) -> np.ndarray:
-        """(P, 3) float32: every frame's points in metres in the track's frame, oldest frame first (built once
-        per change of the frames: the fused partial of one update is the alignment target of the next)."""
-        if self._concatenated is None:
-            self._concatenated = np.concatenate(list(self.frames)) if self.frames else np.zeros((0, 3), np.float32)
-            self._concatenated.flags.writeable = False   # shared by the callers until the next frame
-        return self._concatenated
+        """(P, 3) float32: every frame's points in metres in the track's frame, oldest frame first."""
+        return np.concatenate(list(self.frames)) if self.frames else np.zeros((0, 3), np.float32)
 
-    def fused_normalized(self) -> np.ndarray:
-        """(P, 3) float32: every frame's points, oldest frame first, divided by the current length."""
-        metres = self.metres().astype(np.float64)
+    def fused_normalized(self, metres: np.ndarray) -> np.ndarray:
+        """(P, 3) float32: the track's points (`metres()`), in the mean box placement, divided by the current
+        length."""
+        metres = metres.astype(np.float64)
         if self.correction_sum.any():   # into the mean box placement: undo the mean correction
             metres = PlanarTransform(*(self.correction_sum / self.frames_seen)).undo(metres)
         return (metres / self.box.size[0]).astype(np.float32)
@@ -182,8 +177,8 @@ class TrackFusion:
         metres = np.asarray(vehicle.normalized, dtype=np.float32).reshape(-1, 3) * np.float32(box.size[0])
         kept = voxel_first_indices(metres, self.limits.voxel_size)
         metres = metres[kept]
-        if self.limits.align is not None and track.frames and len(metres):
-            transform = align_planar(metres, track.metres(), self.limits.align)
+        if self.limits.align is not None and track.target is not None and len(metres):
+            transform = align_planar(metres, track.target, self.limits.align)
             if transform is None:
                 self._align_refused += 1
             else:
@@ -193,7 +188,10 @@ class TrackFusion:
         track.frames_seen += 1
         kept = kept[track.add(metres, self.limits)]
         self._tracks[key] = track
-        fused = track.fused_normalized()
+        everything = track.metres()   # one concatenation per update: the fused partial and the next target
+        if self.limits.align is not None:
+            track.target = everything[strided_indices(len(everything), self.limits.align.max_target_points)]
+        fused = track.fused_normalized(everything)
         while len(self._tracks) > self.limits.max_tracks:
             self._tracks.popitem(last=False)
             self._evicted += 1

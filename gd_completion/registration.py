@@ -77,10 +77,15 @@ class PlanarTransform:
         return out
 
 
+def strided_indices(count: int, n: int) -> np.ndarray:
+    """At most `n` evenly spaced indices of `count` items, ascending (all of them when `count` <= `n`)."""
+    if count <= n:
+        return np.arange(count)
+    return np.linspace(0, count - 1, n).round().astype(np.intp)
+
+
 def _strided(points: np.ndarray, n: int) -> np.ndarray:
-    if len(points) <= n:
-        return points
-    return points[np.linspace(0, len(points) - 1, n).round().astype(np.intp)]
+    return points if len(points) <= n else points[strided_indices(len(points), n)]
 
 
 @numba.njit(cache=True, nogil=True)
