@@ -156,23 +156,34 @@ def test_current_source_names_the_measured_rows_of_this_frame() -> None:
 
 def test_own_points_keep_their_measured_place_without_include_input_points() -> None:
     """Track fusion with alignment, include_input_points off: the completion's copies of this frame's points
-    (generated=0) are published where this frame measured them, not in the track's mean placement (a few
-    centimetres off under box jitter)."""
+    (generated=0) are published where this frame measured them, each the measured point it copies, not in the
+    track's mean placement (a few centimetres off under box jitter)."""
     from test_registration import seen_part
+
+    from gd_completion.geometry import denormalize
+    from gd_completion.pipeline import FrameStats
 
     rng = np.random.default_rng(5)
     car = Box3D((12.0, 4.0, -0.8), SIZE, 0.4, "car", 9)
     completer = VehicleCompleter(load_model(DEFAULT_WEIGHTS), preprocessing=Preprocessing(ground_clearance=0.0),
                                  fusion=TrackFusion(), include_input_points=False)
+    twin = TrackFusion()   # fed the same frames: the fused partial the completer saw
     for k in range(6):
         dx, dy, dyaw = *rng.normal(0, 0.05, 2), np.radians(rng.normal(0, 1.5))
         box = replace(car, center=(12.0 + dx, 4.0 + dy, -0.8), yaw=0.4 + dyaw)
         cloud = to_cloud(seen_part(np.random.default_rng(20 + k), 800), car)
         result = completer.complete_frame(cloud, [box], stamp_ns=k * SECOND // 10)
-    own = result.points[result.generated == 0].astype(np.float64)
-    gaps = np.min(np.linalg.norm(own[:, None, :] - cloud[None, :, :].astype(np.float64), axis=-1), axis=1)
-    assert completer.fusion.counters["frames_aligned"] >= 4 and len(own) > 20
-    assert gaps.max() < 1e-4   # metres: this frame's measured points (before: up to the box's jitter off)
+        (fused,) = twin.update(k * SECOND // 10, completer.prepare(cloud, [box], FrameStats()))
+    assert completer.fusion.counters["frames_aligned"] >= 4
+    completion, rows = completer._complete_one(fused.normalized, box.size, True)
+    own = rows >= len(fused.normalized) - fused.current_rows
+    assert own.sum() > 20 and (result.generated == 0).sum() == own.sum()
+    published = result.points[own].astype(np.float64)           # the completion's order, own rows in place
+    copied = fused.measured[fused.current_source[rows[own] - (len(fused.normalized) - fused.current_rows)]]
+    np.testing.assert_allclose(published, copied, atol=1e-4)    # each the very point it copies, as measured
+    placed = denormalize(completion[own], box)                  # where the track's placement put them
+    assert np.linalg.norm(placed - published, axis=1).max() > 0.005   # the jitter this corrects
+    np.testing.assert_allclose(result.points[~own], denormalize(completion[~own], box), atol=1e-4)
 
 
 def test_voxel_downsampling_keeps_first_point_per_voxel() -> None:
@@ -311,15 +322,17 @@ def test_merged_measured_points_are_published_once(include: bool, fused_points: 
     assert len(track) == 3 and len(np.unique(result.points, axis=0)) == len(result.points)
     # the completion of the last frame, recomputed from the same fused partial (the network is deterministic)
     completion, rows = completer._complete_one(vehicle.normalized, box.size, True)
+    own_from = 0 if fused_points else len(vehicle.normalized) - vehicle.current_rows   # this frame's: the last rows
+    own = rows >= own_from
     expected = denormalize(completion, box).astype(np.float32)
+    if not include and not fused_points:   # this frame's copies are published where it measured them
+        expected[own] = vehicle.measured[vehicle.current_source[rows[own] - own_from]]
     nearest = np.min(np.linalg.norm(expected[:, None, :] - result.points[None, :, :], axis=-1), axis=1)
     assert nearest.max() < 1e-4                                 # every completion point is published
     measured_now = result.points[result.generated == 0]
     if include:
         reference = fusion.fused_measured(vehicle) if fused_points else vehicle.measured
         assert len(measured_now) == len(reference)             # the measured points, each once
-    own_from = 0 if fused_points else len(vehicle.normalized) - vehicle.current_rows   # this frame's: the last rows
-    own = rows >= own_from
     assert 0 < own.sum() and (fused_points or ((rows >= 0) & (rows < own_from)).any())   # both kinds occur
     if not include:
         assert len(result.points) == len(completion) and (result.generated == 0).sum() == own.sum()
