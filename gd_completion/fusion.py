@@ -42,7 +42,7 @@ import numpy as np
 from gd_completion.geometry import Box3D, denormalize
 from gd_completion.limits import check_positive_fields
 from gd_completion.preprocess import CroppedVehicle
-from gd_completion.registration import AlignSettings, PlanarTransform, align_planar, strided_indices
+from gd_completion.registration import AlignSettings, PlanarTransform, align_planar, evenly_strided, strided_indices
 
 __all__ = ["FusionLimits", "TrackFusion", "voxel_downsample", "voxel_first_indices"]
 
@@ -190,7 +190,7 @@ class TrackFusion:
         self._tracks[key] = track
         everything = track.metres()   # one concatenation per update: the fused partial and the next target
         if self.limits.align is not None:
-            track.target = everything[strided_indices(len(everything), self.limits.align.max_target_points)]
+            track.target = evenly_strided(everything, self.limits.align.max_target_points)
         fused = track.fused_normalized(everything)
         while len(self._tracks) > self.limits.max_tracks:
             self._tracks.popitem(last=False)

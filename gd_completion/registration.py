@@ -84,7 +84,8 @@ def strided_indices(count: int, n: int) -> np.ndarray:
     return np.linspace(0, count - 1, n).round().astype(np.intp)
 
 
-def _strided(points: np.ndarray, n: int) -> np.ndarray:
+def evenly_strided(points: np.ndarray, n: int) -> np.ndarray:
+    """At most `n` evenly spaced rows of `points` (`points` itself when it has no more)."""
     return points if len(points) <= n else points[strided_indices(len(points), n)]
 
 
@@ -175,8 +176,8 @@ def align_planar(source: np.ndarray, target: np.ndarray, settings: AlignSettings
     """The planar rigid transform that moves `source` (M, 3) onto `target` (P, 3) (metres), or None when
     the fit is refused (too few matches, or a shift or turn beyond the settings' bounds)."""
     settings = settings or AlignSettings()
-    source = _strided(np.asarray(source, dtype=np.float64).reshape(-1, 3), settings.max_source_points)
-    target = _strided(np.asarray(target, dtype=np.float64).reshape(-1, 3), settings.max_target_points)
+    source = evenly_strided(np.asarray(source, dtype=np.float64).reshape(-1, 3), settings.max_source_points)
+    target = evenly_strided(np.asarray(target, dtype=np.float64).reshape(-1, 3), settings.max_target_points)
     if min(len(source), len(target)) < settings.min_pairs \
             or not (np.isfinite(source).all() and np.isfinite(target).all()):
         return None
