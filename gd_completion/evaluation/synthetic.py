@@ -120,20 +120,20 @@ def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path 
 def load_heldout_meshes(n_samples: int, mesh_dir: str | Path, *, seed: int = EVAL_SEED) -> HeldOut:
     """Pairs made from the held-out meshes only (`synth.meshio.HELDOUT_MESHES` of `mesh_dir`, never trained
     on): `build_dataset` with every shape drawn from those meshes."""
-    from gd_completion.synth.meshio import HELDOUT_MESHES, load_mesh_folder
+    from gd_completion.synth.meshio import HELDOUT_MESHES, mesh_files
 
     if not Path(mesh_dir).is_dir():
         raise EvaluationError(f"mesh folder {mesh_dir}: not a directory")
-    try:
-        found = len(load_mesh_folder(mesh_dir, only=HELDOUT_MESHES))
-    except DataFormatError as exc:
+    try:   # counted by file name: build_dataset reads them (once)
+        found = sum(path.stem in HELDOUT_MESHES for path in mesh_files(mesh_dir))
+        if found != len(HELDOUT_MESHES):
+            raise EvaluationError(f"{mesh_dir}: {found} of the {len(HELDOUT_MESHES)} held-out meshes found")
+        if n_samples < 1:
+            raise EvaluationError("no held-out mesh samples requested")
+        data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, mesh_fraction=1.0, only_meshes=HELDOUT_MESHES,
+                             surface_resample=True)
+    except DataFormatError as exc:   # an unreadable mesh
         raise EvaluationError(f"held-out meshes: {exc}") from exc
-    if found != len(HELDOUT_MESHES):
-        raise EvaluationError(f"{mesh_dir}: {found} of the {len(HELDOUT_MESHES)} held-out meshes found")
-    if n_samples < 1:
-        raise EvaluationError("no held-out mesh samples requested")
-    data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, mesh_fraction=1.0, only_meshes=HELDOUT_MESHES,
-                         surface_resample=True)
     partial, complete = _pairs(data, "build_dataset")
     where = f"the {found} held-out meshes of {Path(mesh_dir).name} ({', '.join(HELDOUT_MESHES)}), seed {seed}"
     return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32),
