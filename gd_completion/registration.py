@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from gd_completion.cell_grid import bucket_by_cell
+from gd_completion.cell_grid import bucket_points
 from gd_completion.limits import check_positive_fields
 
 __all__ = ["AlignSettings", "PlanarTransform", "align_planar"]
@@ -93,7 +93,6 @@ def evenly_strided(points: np.ndarray, n: int) -> np.ndarray:
 def _icp_planar(source: np.ndarray, target: np.ndarray, max_distance: float, iterations: int
                 ) -> tuple[float, float, float, int]:
     """(yaw, tx, ty, pairs) of the trimmed planar ICP of `source` onto `target` (float64 (n, 3), (m, 3))."""
-    m = target.shape[0]
     lo = np.empty(3)
     dims = np.empty(3, np.int64)
     h = max_distance
@@ -106,13 +105,7 @@ def _icp_planar(source: np.ndarray, target: np.ndarray, max_distance: float, ite
         if total <= MAX_GRID_CELLS:
             break
         h *= 2.0
-    cell = np.empty(m, np.int64)
-    for j in range(m):
-        c = 0
-        for a in range(3):
-            c = c * dims[a] + min(int((target[j, a] - lo[a]) / h), dims[a] - 1)
-        cell[j] = c
-    start, order = bucket_by_cell(cell, total)
+    start, order = bucket_points(target, lo, np.full(3, h), dims)
 
     limit = max_distance * max_distance
     yaw, tx, ty, pairs = 0.0, 0.0, 0.0, 0

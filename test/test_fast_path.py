@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from gd_completion.cell_grid import bucket_points
 from gd_completion.evaluation.baselines import published_outputs
 from gd_completion.model import chamfer_l2, farthest_point_sample, kernels
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
@@ -62,6 +63,16 @@ def test_kernels_match_torch_searches(scans):
         fast = _nearest_k(query, ref, 8, None, 0, exclude_self)                # brute force: graph, ball at 4r
         with torch_kernels():
             _same_up_to_exact_ties(query, ref, fast, _nearest_k(query, ref, 8, None, 0, exclude_self))
+
+
+def test_bucket_points_groups_points_by_their_cell():
+    """The cell step shared by the three grid searches: row-major cells, the last cell of an axis takes what
+    lies beyond it, an infinite width puts every point in cell 0 of its axis, input order kept within a cell."""
+    pts = np.array([[0.0, 0.0, 5.0], [0.95, 0.9, -3.0], [1.0, 0.0, 0.0], [2.5, 1.5, 0.0], [0.2, 0.1, 1.0],
+                    [9.0, 0.0, 0.0]], np.float32)
+    start, order = bucket_points(pts, np.zeros(3), np.array([1.0, 1.0, np.inf]), np.array([3, 2, 1], np.int64))
+    cells = [order[start[c]:start[c + 1]].tolist() for c in range(6)]
+    assert cells == [[0, 1, 4], [], [2], [], [5], [3]]   # cell = x * 2 + y
 
 
 def test_grid_search_of_the_knn_graph_matches_the_window_search(scans):

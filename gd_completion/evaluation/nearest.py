@@ -9,7 +9,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from gd_completion.cell_grid import bucket_by_cell
+from gd_completion.cell_grid import bucket_points
 
 _INF = np.float32(np.inf)
 MAX_CELLS_PER_AXIS = 256
@@ -30,27 +30,16 @@ def _grid_nearest(query: np.ndarray, target: np.ndarray, out: np.ndarray) -> Non
     dims = np.empty(3, np.int64)
     for a in range(3):
         dims[a] = min(int((hi[a] - lo[a]) / h) + 1, MAX_CELLS_PER_AXIS)
-    scale = np.empty(3, np.float64)
-    for a in range(3):
-        scale[a] = dims[a] / max(hi[a] - lo[a], 1e-12) if dims[a] > 1 else 0.0
     width = np.empty(3, np.float64)  # the cells' real widths (dims may be capped)
     for a in range(3):
         width[a] = (hi[a] - lo[a]) / dims[a] if dims[a] > 1 else np.inf
-    cell = np.empty(n, np.int64)
-    for j in range(n):
-        c = 0
-        for a in range(3):
-            k = min(int((target[j, a] - lo[a]) * scale[a]), dims[a] - 1)
-            c = c * dims[a] + k
-        cell[j] = c
-    total = dims[0] * dims[1] * dims[2]
-    start, order = bucket_by_cell(cell, total)
+    start, order = bucket_points(target, lo, width, dims)
     reach = max(dims[0], max(dims[1], dims[2]))
     c0 = np.empty(3, np.int64)
     for i in range(query.shape[0]):
         qx, qy, qz = query[i, 0], query[i, 1], query[i, 2]
         for a in range(3):
-            k = int(np.floor((query[i, a] - lo[a]) * scale[a]))
+            k = int(np.floor((query[i, a] - lo[a]) / width[a]))
             c0[a] = min(max(k, 0), dims[a] - 1)
         best = _INF
         for ring in range(reach + 1):

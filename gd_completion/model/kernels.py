@@ -21,7 +21,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from gd_completion.cell_grid import bucket_by_cell
+from gd_completion.cell_grid import bucket_points
 
 _INF = np.float32(np.inf)
 FPS_LEAF = 32   # points per leaf of the pruned FPS (on the merge's ~3,000 points, 24 to 40 were within 5 %)
@@ -275,13 +275,7 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
     for a in range(3):
         dims[a] = int((hi[a] - lo[a]) / c) + 1
         cells *= dims[a]
-    cell_of = np.empty(n, np.int64)
-    for j in range(n):
-        ix = min(int((ref[j, 0] - lo[0]) / c), dims[0] - 1)
-        iy = min(int((ref[j, 1] - lo[1]) / c), dims[1] - 1)
-        iz = min(int((ref[j, 2] - lo[2]) / c), dims[2] - 1)
-        cell_of[j] = (ix * dims[1] + iy) * dims[2] + iz
-    start, ridx = bucket_by_cell(cell_of, cells)   # the ref points sorted by cell
+    start, ridx = bucket_points(ref, lo, np.full(3, c), dims)   # the ref points sorted by cell
     pairs = 0   # point pairs sharing a cell: the grid's work grows with it
     for i in range(cells):
         pairs += (start[i + 1] - start[i]) ** 2
