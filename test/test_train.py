@@ -1,6 +1,8 @@
 """Training loop tests: loss decreases, determinism, resume from last.pt, time budget, bad data."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -236,3 +238,23 @@ def test_cosine_learning_rate_schedule():
     assert all(a > b for a, b in zip(lrs, lrs[1:]))
     assert lrs[2] == pytest.approx(0.5 * (1e-3 + 1e-5))
     assert TrainSettings(epochs=5, lr=2e-3).lr_at(4) == 2e-3   # constant by default
+
+
+RECIPES = sorted(p for p in (Path(__file__).resolve().parents[1] / "recipes").glob("*.json")
+                 if p.name != "ggd_v2_config.json")   # that one is a model configuration, not a recipe
+
+
+@pytest.mark.parametrize("path", RECIPES, ids=lambda p: p.stem)
+def test_every_recipe_in_the_repository_is_valid(path):
+    """The recipes kept per training run parse with their sampling options and model configuration, as `train`
+    reads them (no data generated), and warm-start from a run of the repository's recipes."""
+    from gd_completion.cli import build_parser
+    from gd_completion.tools.train import apply_recipe, load_config, sampling_options
+
+    args = build_parser("train").parse_args(["train", "--output", "unused"])
+    apply_recipe(args, path)
+    sampling_options(args.sampling)
+    config = load_config(args)
+    assert config.num_output == 2048 and args.samples > 0 and args.epochs > 0
+    if args.init_from is not None and "ggd_v2" in str(args.init_from):
+        assert (path.parent / f"{Path(args.init_from).parent.name}.json").exists(), "warm start from an unknown run"
