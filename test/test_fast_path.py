@@ -68,11 +68,11 @@ def test_kernels_match_torch_searches(scans):
 def test_bucket_points_groups_points_by_their_cell():
     """The cell step shared by the three grid searches: row-major cells, the last cell of an axis takes what
     lies beyond it, an infinite width puts every point in cell 0 of its axis, input order kept within a cell."""
-    pts = np.array([[0.0, 0.0, 5.0], [0.95, 0.9, -3.0], [1.0, 0.0, 0.0], [2.5, 1.5, 0.0], [0.2, 0.1, 1.0],
-                    [9.0, 0.0, 0.0]], np.float32)
-    start, order = bucket_points(pts, np.zeros(3), np.array([1.0, 1.0, np.inf]), np.array([3, 2, 1], np.int64))
+    pts = np.array([[0.0, 5.0, 0.0], [0.95, -3.0, 0.9], [1.0, 0.0, 0.0], [2.5, 0.0, 1.5], [0.2, 1.0, 0.1],
+                    [9.0, 0.0, 0.0], [0.5, 0.0, 7.0]], np.float32)
+    start, order = bucket_points(pts, np.zeros(3), np.array([1.0, np.inf, 1.0]), np.array([3, 1, 2], np.int64))
     cells = [order[start[c]:start[c + 1]].tolist() for c in range(6)]
-    assert cells == [[0, 1, 4], [], [2], [], [5], [3]]   # cell = x * 2 + y
+    assert cells == [[0, 1, 4], [6], [2], [], [5], [3]]   # cell = (x * 1 + y) * 2 + z
 
 
 def test_grid_search_of_the_knn_graph_matches_the_window_search(scans):

@@ -256,5 +256,13 @@ def test_every_recipe_in_the_repository_is_valid(path):
     sampling_options(args.sampling)
     config = load_config(args)
     assert config.num_output == 2048 and args.samples > 0 and args.epochs > 0
-    if args.init_from is not None and "ggd_v2" in str(args.init_from):
-        assert (path.parent / f"{Path(args.init_from).parent.name}.json").exists(), "warm start from an unknown run"
+    if args.init_from is not None:   # a run of another recipe, or weights kept in the repository
+        start = Path(args.init_from)
+        if start.parts[0] == "runs":
+            assert (path.parent / f"{start.parent.name}.json").exists(), f"warm start from an unknown run: {start}"
+        else:
+            assert (path.parents[1] / start).is_file(), f"warm start from a missing file: {start}"
+
+
+def test_the_repository_keeps_its_recipes():
+    assert {p.stem for p in RECIPES} >= {"ggd_v2_stage1", "ggd_v2_stage4", "ggd_v2_stage5b"}
