@@ -37,3 +37,8 @@ class DeviceError(GDCompletionError):
 class OutputError(GDCompletionError):
     """An output (bag, PNG, report, folder) that cannot be written: a file where a folder should be, no permission,
     a full disk."""
+
+
+class TrainingError(GDCompletionError):
+    """Training cannot go on (e.g. too many steps with a non-finite loss or gradient)."""
+

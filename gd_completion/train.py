@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .errors import CheckpointError, DataFormatError
+from .errors import CheckpointError, DataFormatError, TrainingError
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.config import GGDConfig
 from .model.losses import CD_SCALE, chamfer_l2, ggd_loss
@@ -39,6 +39,7 @@ class TrainSettings:
     lr: float = 1e-3                # paper: 0.01; see docs/MODEL.md
     lr_final: float | None = None   # cosine decay per epoch from lr to lr_final (None: constant lr)
     max_grad_norm: float = 10.0     # gradient clipping (0 disables)
+    max_skipped_steps: int = 20     # steps per epoch whose loss or gradient is not finite (skipped) before giving up
     seed: int = 0
     device: str = "cpu"
     time_budget_s: float | None = None
@@ -120,6 +121,16 @@ def evaluate(model: GGDNet, partial: torch.Tensor, complete: torch.Tensor, batch
     return {k: CD_SCALE * v / partial.shape[0] for k, v in sums.items()}
 
 
+def _backward(model: GGDNet, total: torch.Tensor, max_grad_norm: float) -> bool:
+    """Backpropagate `total` and clip the gradient norm to `max_grad_norm` (0: no clipping); False (nothing to
+    step) when the loss or the gradient is not finite: one bad batch must not turn every weight into NaN."""
+    if not torch.isfinite(total):
+        return False
+    total.backward()
+    norm = torch.nn.utils.clip_grad_norm_(model.parameters(), max_grad_norm if max_grad_norm > 0 else math.inf)
+    return bool(torch.isfinite(norm))
+
+
 def warm_start(model: GGDNet, path: str | Path, skip: Sequence[str] = ()) -> list[str]:
     """Copy into `model` every tensor of checkpoint `path` with the same name and shape, except names
     starting with a prefix in `skip`; returns the names left at their fresh initialisation."""
@@ -192,7 +203,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         g = torch.Generator().manual_seed(settings.seed * 100003 + epoch)   # resumable shuffling
         perm = torch.randperm(tr_x.shape[0], generator=g)
         sums: dict[str, float] = {}
-        seen = 0
+        seen = skipped = 0
         t0 = time.monotonic()
         for s in range(0, perm.numel(), settings.batch_size):
             if settings.time_budget_s is not None and time.monotonic() - start > settings.time_budget_s:
@@ -203,9 +214,14 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             losses = ggd_loss(model(x, _rows(tr_s, idx, device)), gt, lam=lam, alpha=settings.alpha,
                               beta=settings.beta)
             optimizer.zero_grad(set_to_none=True)
-            losses["total"].backward()
-            if settings.max_grad_norm > 0:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), settings.max_grad_norm)
+            if not _backward(model, losses["total"], settings.max_grad_norm):
+                skipped += 1
+                log.warning("epoch %d step %d: non-finite loss or gradient, step skipped (%d this epoch)",
+                            epoch + 1, s // settings.batch_size + 1, skipped)
+                if skipped > settings.max_skipped_steps:
+                    raise TrainingError(f"epoch {epoch + 1}: more than {settings.max_skipped_steps} steps with a "
+                                        "non-finite loss or gradient; lower the learning rate or check the data")
+                continue
             optimizer.step()
             for k, v in losses.items():
                 sums[k] = sums.get(k, 0.0) + v.item() * idx.numel()
@@ -220,6 +236,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             log.info("time budget of %s s reached before epoch %d; stopping", settings.time_budget_s, epoch + 1)
             break
         record = {"epoch": epoch + 1, "lam": lam, "lr": settings.lr_at(epoch), "seconds": time.monotonic() - t0,
+                  "skipped_steps": skipped,
                   **{f"train_{k}": v / seen for k, v in sums.items()},
                   **{f"val_{k}": v for k, v in evaluate(model, va_x, va_y, settings.batch_size, device,
                                                                      va_s).items()}}

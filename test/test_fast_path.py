@@ -199,9 +199,19 @@ def test_cuda_torch_path_matches_cpu_fast_path(scans, model):
     x = torch.from_numpy(scans["partial"][:8])
     shapes = _shapes(scans)[:8]
     gpu = copy.deepcopy(model).to("cuda")
-    with torch.inference_mode():
-        cpu_out = model(x, shapes).completion
-        gpu_out = gpu(x.cuda(), shapes.cuda()).completion.cpu()
-        alone = gpu(x[3:4].cuda(), shapes[3:4].cuda()).completion.cpu()
-    assert (gpu_out - cpu_out).abs().max().item() <= 1e-3
+    # TF32 (cuDNN's default for convolutions) rounds products to a 10-bit mantissa: a different network
+    tf32 = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        with torch.inference_mode():
+            cpu_out = model(x, shapes).completion
+            gpu_out = gpu(x.cuda(), shapes.cuda()).completion.cpu()
+            alone = gpu(x[3:4].cuda(), shapes[3:4].cuda()).completion.cpu()
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = tf32
+    # CUDA's GEMMs round differently in the last bit, which can flip one discrete choice (an FPS pick, a kNN
+    # tie) in a rare cloud: most clouds agree to 1e-4, and every cloud's shape to a Chamfer distance of 1e-5
+    per_cloud = (gpu_out - cpu_out).abs().amax((1, 2))
+    assert (per_cloud <= 1e-4).float().mean().item() >= 0.75
+    assert chamfer_l2(gpu_out, cpu_out).max().item() <= 1e-5
     assert (alone - gpu_out[3:4]).abs().max().item() <= 1e-4

@@ -135,6 +135,22 @@ def test_smallest_k_exact():
     assert torch.equal(val, exp) and torch.equal(d.gather(-1, idx), exp)
 
 
+
+def test_smallest_k_of_sparse_rows_indexes_only_real_columns():
+    """Rows with fewer than k finite entries (a window holding fewer than k candidates) over widths that are
+    not a multiple of the group: the inf slots must still name real columns (a padding column crashed the
+    window search's gather on CUDA)."""
+    g = torch.Generator().manual_seed(0)
+    for w in range(64, 300, 7):
+        d = torch.full((16, 32, w), float("inf"))
+        finite = torch.rand(16, 32, w, generator=g) < 0.02
+        d[finite] = torch.rand(int(finite.sum()), generator=g)
+        val, idx = smallest_k(d, 6)
+        assert int(idx.min()) >= 0 and int(idx.max()) < w
+        assert torch.equal(val, d.topk(6, -1, largest=False).values)
+        real = torch.isfinite(val)
+        assert torch.equal(d.gather(-1, idx)[real], val[real])
+
 def test_window_knn_matches_brute_force():
     g = torch.Generator().manual_seed(0)
     q = torch.randn(2, 700, 3, generator=g)

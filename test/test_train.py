@@ -8,7 +8,7 @@ import pytest
 import torch
 from test_model import TINY
 
-from gd_completion.errors import DataFormatError
+from gd_completion.errors import DataFormatError, TrainingError
 from gd_completion.model import GGDConfig, GGDNet, load_model, read_checkpoint_metadata
 from gd_completion.train import TrainSettings, train, warm_start
 
@@ -63,6 +63,38 @@ def test_time_budget_and_bad_data(tmp_path):
     with pytest.raises(DataFormatError, match="training data"):
         train(TINY, bad, _data(4, 1), tmp_path / "bad", _settings())
 
+
+
+def test_non_finite_training_data_is_a_clear_error(tmp_path):
+    partial, complete = _data(8, 0)
+    partial[2, 5, 1] = np.nan
+    with pytest.raises(DataFormatError, match="training data partial: contains NaN or infinite"):
+        train(TINY, (partial, complete), _data(4, 1), tmp_path, _settings(epochs=1))
+
+
+def test_a_step_with_a_non_finite_loss_is_skipped_and_counted(tmp_path, monkeypatch, caplog):
+    """One bad batch must not turn every weight into NaN; too many end the run with a clear error."""
+    import gd_completion.train as training
+
+    calls = {"n": 0}
+
+    def every_other_loss_nan(*args, **kwargs):
+        losses = ggd_loss(*args, **kwargs)
+        calls["n"] += 1
+        if calls["n"] % 2:
+            losses["total"] = losses["total"] * float("nan")
+        return losses
+
+    ggd_loss = training.ggd_loss
+    monkeypatch.setattr(training, "ggd_loss", every_other_loss_nan)
+    with caplog.at_level("WARNING", logger="gd_completion.train"):
+        res = train(TINY, _data(8, 0), _data(4, 1), tmp_path, _settings(epochs=2, batch_size=2))
+    assert [h["skipped_steps"] for h in res.history] == [2, 2]     # 4 steps an epoch, every other one NaN
+    assert "non-finite loss or gradient, step skipped" in caplog.text
+    assert all(np.isfinite(h["train_total"]) for h in res.history)
+    assert all(torch.isfinite(t).all() for t in load_model(res.last_path).state_dict().values())
+    with pytest.raises(TrainingError, match="more than 1 steps"):
+        train(TINY, _data(8, 0), _data(4, 1), tmp_path / "strict", _settings(batch_size=2, max_skipped_steps=1))
 
 def test_warm_start_copies_matching_tensors_only(tmp_path):
     res = train(TINY, _data(8, 0), _data(4, 1), tmp_path / "src", _settings(epochs=1))

@@ -181,6 +181,7 @@ def smallest_k(d: Tensor, k: int, group: int = 8) -> tuple[Tensor, Tensor]:
 
     Exact two-stage selection: the k groups of `group` columns with the smallest minima contain the
     k smallest entries; topk then runs on k*group candidates instead of W (topk is the CPU hot spot).
+    A row with fewer than k finite entries fills its last slots with inf, at indices within [0, W).
     """
     w = d.shape[-1]
     if w < 4 * k * group:
@@ -192,7 +193,7 @@ def smallest_k(d: Tensor, k: int, group: int = 8) -> tuple[Tensor, Tensor]:
     blk = mins.topk(k, dim=-1, largest=False, sorted=False).indices
     cand = (blk.unsqueeze(-1) * group + torch.arange(group, device=d.device)).flatten(-2)
     val, j = d.gather(-1, cand).topk(k, dim=-1, largest=False, sorted=True)
-    return val, cand.gather(-1, j)
+    return val, cand.gather(-1, j).clamp_(max=w - 1)   # an inf slot may have picked a padding column
 
 
 def window_knn(query: Tensor, ref: Tensor, k: int, margin: float, block: int = 64,
@@ -270,9 +271,9 @@ def _window_knn_torch(query: Tensor, ref: Tensor, k: int, margin: float, block: 
     # only [lo, hi) counts: the result of a cloud must not depend on the other clouds of the batch
     outside = (cand < lo.unsqueeze(-1)) | (cand >= hi.unsqueeze(-1))
     d.masked_fill_(outside.view(b * nb, 1, w), float("inf"))
-    if exclude_self:
-        col = torch.arange(nb * block, device=ref.device).clamp(max=q - 1).view(1, nb, block) - start.unsqueeze(-1)
-        d.view(-1, w).scatter_(1, col.reshape(-1, 1), float("inf"))
+    if exclude_self:   # a query's own sorted position, wherever it falls (never an index out of range)
+        own = torch.arange(nb * block, device=ref.device).clamp(max=q - 1).view(1, nb, block, 1)
+        d.masked_fill_((cand.unsqueeze(2) == own).view(b * nb, block, w), float("inf"))
     dist, j = smallest_k(d, k)                                         # (B*nb, block, k)
     pos = torch.gather(cand.view(b * nb, 1, w).expand(-1, block, -1), 2, j).view(b, nb * block, k)
     # fewer than k candidates in the window: the ref point at the window's start
