@@ -72,11 +72,13 @@ def main() -> None:
     ap.add_argument("--num-threads", type=int, default=0, help="node num_threads (0 = one vehicle thread per core)")
     ap.add_argument("--device", default="cpu", help="node device (cpu, cuda or cuda:N)")
     ap.add_argument("--no-measured-merge", action="store_true", help="node parameter measured_merge:=false")
+    ap.add_argument("--model", default="", help="node parameter model_path (default: the shipped weights)")
     args = ap.parse_args()
 
     frame = busy_frame(args.vehicles) if args.pandaset is None else pandaset_frame(args.pandaset)
     params = {"num_threads": str(args.num_threads), "boxes_type": "marker", "device": args.device,
-              "measured_merge": "false" if args.no_measured_merge else "true"}
+              "measured_merge": "false" if args.no_measured_merge else "true",
+              **({"model_path": str(Path(args.model).resolve())} if args.model else {})}
     with benchmark_session(params, "bench") as (node, client):
         client.warm_up(frame, timeout=60)
         time.sleep(3.0)  # let the warm-up frames drain

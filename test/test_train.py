@@ -297,4 +297,19 @@ def test_every_recipe_in_the_repository_is_valid(path):
 
 
 def test_the_repository_keeps_its_recipes():
-    assert {p.stem for p in RECIPES} >= {"ggd_v2_stage1", "ggd_v2_stage4", "ggd_v2_stage5b"}
+    assert {p.stem for p in RECIPES} >= {"ggd_v2_stage1", "ggd_v2_stage4", "ggd_v2_stage5b", "ggd_v2_stage6"}
+
+
+def test_the_shipped_weights_come_from_the_recipe_that_claims_them():
+    """The model card and README name recipes/ggd_v2_stage5b.json as the shipped weights' run: its schedule,
+    seed and configuration are the ones stored in the checkpoint."""
+    import json
+
+    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS
+
+    recipe = json.loads((Path(__file__).resolve().parents[1] / "recipes" / "ggd_v2_stage5b.json").read_text())
+    meta = read_checkpoint_metadata(DEFAULT_WEIGHTS)
+    assert meta["epoch"] == recipe["epochs"] == len(meta["history"])
+    for key in ("epochs", "generation_epochs", "lam", "batch_size", "lr", "lr_final", "seed"):
+        assert meta["settings"][key] == recipe[key], key
+    assert GGDConfig.from_dict(meta["config"]) == GGDConfig.from_dict(recipe["config"])
