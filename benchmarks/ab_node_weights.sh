@@ -2,9 +2,9 @@
 # Alternating A/B of two checkpoints in the live node (bench_node.py --model, 20 vehicles, measured merge on):
 #   bash benchmarks/ab_node_weights.sh A.pt B.pt [ROUNDS]   (appends nothing; prints the rows to compare)
 set -u
+a=$(realpath "$1"); b=$(realpath "$2"); rounds=${3:-3}
 cd "$(dirname "$0")/.."
 py=.venv/bin/python
-a=$1; b=$2; rounds=${3:-3}
 echo "# A/B of $a and $b in the node, alternating, $rounds rounds (bench_node.py --model), $(date -u +%FT%TZ)"
 for round in $(seq "$rounds"); do
   for weights in "$a" "$b"; do

@@ -41,4 +41,3 @@ class OutputError(GDCompletionError):
 
 class TrainingError(GDCompletionError):
     """Training cannot go on (e.g. too many steps with a non-finite loss or gradient)."""
-

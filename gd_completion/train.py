@@ -230,6 +230,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             if steps % PROGRESS_STEPS == 0:
                 log.info("epoch %d step %d/%d loss %.4f (%.1f s)", epoch + 1, steps,
                          -(-perm.numel() // settings.batch_size), sums["total"] / seen, time.monotonic() - t0)
+        if seen == 0 and not stopped:
+            raise TrainingError(f"epoch {epoch + 1}: every step had a non-finite loss or gradient")
         if seen == 0:   # time budget ran out before the first batch of this epoch
             save_checkpoint(last_path, model, preprocessing, optimizer=optimizer.state_dict(), epoch=epoch,
                             history=history, settings=asdict(settings), best_cd=best)

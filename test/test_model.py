@@ -135,7 +135,6 @@ def test_smallest_k_exact():
     assert torch.equal(val, exp) and torch.equal(d.gather(-1, idx), exp)
 
 
-
 def test_smallest_k_of_sparse_rows_indexes_only_real_columns():
     """Rows with fewer than k finite entries (a window holding fewer than k candidates) over widths that are
     not a multiple of the group: the inf slots must still name real columns (a padding column crashed the

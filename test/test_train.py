@@ -64,7 +64,6 @@ def test_time_budget_and_bad_data(tmp_path):
         train(TINY, bad, _data(4, 1), tmp_path / "bad", _settings())
 
 
-
 def test_non_finite_training_data_is_a_clear_error(tmp_path):
     partial, complete = _data(8, 0)
     partial[2, 5, 1] = np.nan
@@ -72,29 +71,49 @@ def test_non_finite_training_data_is_a_clear_error(tmp_path):
         train(TINY, (partial, complete), _data(4, 1), tmp_path, _settings(epochs=1))
 
 
-def test_a_step_with_a_non_finite_loss_is_skipped_and_counted(tmp_path, monkeypatch, caplog):
+def test_a_step_with_a_non_finite_loss_or_gradient_is_skipped_and_counted(tmp_path, monkeypatch, caplog):
     """One bad batch must not turn every weight into NaN; too many end the run with a clear error."""
     import gd_completion.train as training
 
+    ggd_loss = training.ggd_loss
     calls = {"n": 0}
 
-    def every_other_loss_nan(*args, **kwargs):
-        losses = ggd_loss(*args, **kwargs)
+    def bad_every_other_step(output, *args, **kwargs):
+        losses = ggd_loss(output, *args, **kwargs)
         calls["n"] += 1
-        if calls["n"] % 2:
+        if calls["n"] % 4 == 1:     # a NaN loss
             losses["total"] = losses["total"] * float("nan")
+        elif calls["n"] % 4 == 2:   # a finite loss (unchanged value) whose gradient is NaN
+            losses["total"] = losses["total"] + torch.sqrt(output.completion.sum() * 0.0)
         return losses
 
-    ggd_loss = training.ggd_loss
-    monkeypatch.setattr(training, "ggd_loss", every_other_loss_nan)
+    monkeypatch.setattr(training, "ggd_loss", bad_every_other_step)
     with caplog.at_level("WARNING", logger="gd_completion.train"):
         res = train(TINY, _data(8, 0), _data(4, 1), tmp_path, _settings(epochs=2, batch_size=2))
-    assert [h["skipped_steps"] for h in res.history] == [2, 2]     # 4 steps an epoch, every other one NaN
+    assert [h["skipped_steps"] for h in res.history] == [2, 2]     # 4 steps an epoch, the first two bad
     assert "non-finite loss or gradient, step skipped" in caplog.text
     assert all(np.isfinite(h["train_total"]) for h in res.history)
     assert all(torch.isfinite(t).all() for t in load_model(res.last_path).state_dict().values())
+    adam = torch.load(res.last_path, weights_only=True)["optimizer"]["state"][0]
+    assert int(adam["step"]) == 4                                    # only the good steps were taken
     with pytest.raises(TrainingError, match="more than 1 steps"):
         train(TINY, _data(8, 0), _data(4, 1), tmp_path / "strict", _settings(batch_size=2, max_skipped_steps=1))
+
+
+def test_an_epoch_without_one_finite_step_is_an_error(tmp_path, monkeypatch):
+    import gd_completion.train as training
+
+    ggd_loss = training.ggd_loss
+
+    def always_nan(*args, **kwargs):
+        losses = ggd_loss(*args, **kwargs)
+        losses["total"] = losses["total"] * float("nan")
+        return losses
+
+    monkeypatch.setattr(training, "ggd_loss", always_nan)
+    with pytest.raises(TrainingError, match="every step had a non-finite loss or gradient"):
+        train(TINY, _data(8, 0), _data(4, 1), tmp_path, _settings(batch_size=4))
+
 
 def test_warm_start_copies_matching_tensors_only(tmp_path):
     res = train(TINY, _data(8, 0), _data(4, 1), tmp_path / "src", _settings(epochs=1))
@@ -300,15 +319,18 @@ def test_the_repository_keeps_its_recipes():
     assert {p.stem for p in RECIPES} >= {"ggd_v2_stage1", "ggd_v2_stage4", "ggd_v2_stage5b", "ggd_v2_stage6"}
 
 
-def test_the_shipped_weights_come_from_the_recipe_that_claims_them():
-    """The model card and README name recipes/ggd_v2_stage5b.json as the shipped weights' run: its schedule,
-    seed and configuration are the ones stored in the checkpoint."""
+@pytest.mark.parametrize(("weights", "recipe_name"), [
+    ("gd_completion/weights/ggd_vehicles.pt", "ggd_v2_stage5b"),              # shipped
+    ("docs/evaluation/ablation/ggd_v2_stage6.pt", "ggd_v2_stage6"),           # measured, kept, not shipped
+])
+def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name):
+    """README, model card and MODEL.md name the recipe of each kept checkpoint: its schedule, seed and configuration
+    are the ones stored in the checkpoint."""
     import json
 
-    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS
-
-    recipe = json.loads((Path(__file__).resolve().parents[1] / "recipes" / "ggd_v2_stage5b.json").read_text())
-    meta = read_checkpoint_metadata(DEFAULT_WEIGHTS)
+    root = Path(__file__).resolve().parents[1]
+    recipe = json.loads((root / "recipes" / f"{recipe_name}.json").read_text())
+    meta = read_checkpoint_metadata(root / weights)
     assert meta["epoch"] == recipe["epochs"] == len(meta["history"])
     for key in ("epochs", "generation_epochs", "lam", "batch_size", "lr", "lr_final", "seed"):
         assert meta["settings"][key] == recipe[key], key
