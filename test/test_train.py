@@ -1,6 +1,7 @@
 """Training loop tests: loss decreases, determinism, resume from last.pt, time budget, bad data."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,8 @@ from test_model import TINY
 from gd_completion.errors import DataFormatError, TrainingError
 from gd_completion.model import GGDConfig, GGDNet, load_model, read_checkpoint_metadata
 from gd_completion.train import TrainSettings, train, warm_start
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _data(n: int, seed: int):
@@ -199,7 +202,6 @@ def test_dataset_cache_is_keyed_on_what_shapes_the_data(tmp_path, monkeypatch, s
 
 
 def test_train_command_tiny_run(tmp_path, caplog):
-    import json
     import logging
 
     from gd_completion.cli import main
@@ -252,8 +254,6 @@ def test_box_conditioned_training_needs_sizes_and_learns_to_use_them(tmp_path):
 
 
 def test_train_command_from_a_recipe(tmp_path):
-    import json
-
     from gd_completion.cli import main
 
     recipe = {"name": "tiny", "config": {**TINY.to_dict(), "box_conditioning": True}, "sampling": "v2",
@@ -291,7 +291,7 @@ def test_cosine_learning_rate_schedule():
     assert TrainSettings(epochs=5, lr=2e-3).lr_at(4) == 2e-3   # constant by default
 
 
-RECIPES = sorted(p for p in (Path(__file__).resolve().parents[1] / "recipes").glob("*.json")
+RECIPES = sorted(p for p in (REPO / "recipes").glob("*.json")
                  if p.name != "ggd_v2_config.json")   # that one is a model configuration, not a recipe
 
 
@@ -312,7 +312,7 @@ def test_every_recipe_in_the_repository_is_valid(path):
         if start.parts[0] == "runs":
             assert (path.parent / f"{start.parent.name}.json").exists(), f"warm start from an unknown run: {start}"
         else:
-            assert (path.parents[1] / start).is_file(), f"warm start from a missing file: {start}"
+            assert (REPO / start).is_file(), f"warm start from a missing file: {start}"
 
 
 def test_the_repository_keeps_its_recipes():
@@ -326,11 +326,8 @@ def test_the_repository_keeps_its_recipes():
 def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name):
     """README, model card and MODEL.md name the recipe of each kept checkpoint: its schedule, seed and configuration
     are the ones stored in the checkpoint."""
-    import json
-
-    root = Path(__file__).resolve().parents[1]
-    recipe = json.loads((root / "recipes" / f"{recipe_name}.json").read_text())
-    meta = read_checkpoint_metadata(root / weights)
+    recipe = json.loads((REPO / "recipes" / f"{recipe_name}.json").read_text())
+    meta = read_checkpoint_metadata(REPO / weights)
     assert meta["epoch"] == recipe["epochs"] == len(meta["history"])
     for key in ("epochs", "generation_epochs", "lam", "batch_size", "lr", "lr_final", "seed"):
         assert meta["settings"][key] == recipe[key], key
