@@ -72,13 +72,16 @@ def main() -> None:
     ap.add_argument("--num-threads", type=int, default=0, help="node num_threads (0 = one vehicle thread per core)")
     ap.add_argument("--device", default="cpu", help="node device (cpu, cuda or cuda:N)")
     ap.add_argument("--no-measured-merge", action="store_true", help="node parameter measured_merge:=false")
+    ap.add_argument("--fresh-frame-age", type=float, default=None,
+                    help="node parameter fresh_frame_age (default: the node's default)")
     ap.add_argument("--model", default="", help="node parameter model_path (default: the shipped weights)")
     args = ap.parse_args()
 
     frame = busy_frame(args.vehicles) if args.pandaset is None else pandaset_frame(args.pandaset)
     params = {"num_threads": str(args.num_threads), "boxes_type": "marker", "device": args.device,
               "measured_merge": "false" if args.no_measured_merge else "true",
-              **({"model_path": str(Path(args.model).resolve())} if args.model else {})}
+              **({"model_path": str(Path(args.model).resolve())} if args.model else {}),
+              **({"fresh_frame_age": str(args.fresh_frame_age)} if args.fresh_frame_age is not None else {})}
     with benchmark_session(params, "bench") as (node, client):
         client.warm_up(frame, timeout=60)
         time.sleep(3.0)  # let the warm-up frames drain
@@ -107,7 +110,8 @@ def main() -> None:
         delta = {k: int(diag.get(k, 0) - base.get(k, 0)) for k in diag}
         print(f"frame {frame.index}: {len(frame.points)} points, {len(frame.boxes)} boxes; sent {len(sent)} frames at "
               f"{send_rate:.1f} Hz for {args.duration:.0f} s; node num_threads={args.num_threads}, "
-              f"device {args.device}, measured_merge {params['measured_merge']}")
+              f"device {args.device}, measured_merge {params['measured_merge']}, "
+              f"fresh_frame_age {params.get('fresh_frame_age', 'default')}")
         print(f"answered {len(answered)}/{len(sent)} frames ({len(answered) / args.duration:.2f} Hz), "
               f"vehicles completed {delta['vehicles_completed']}")
         if len(lat):
@@ -122,9 +126,11 @@ def main() -> None:
             work = np.array(client.processing_times[-len(answered):])
             print(f"node processing time (~/debug/processing_time_ms, answered frames): p50 {np.median(work):.0f} ms, "
                   f"p95 {np.percentile(work, 95):.0f} ms")
-        accounted = delta["frames_published"] + delta["drop_superseded"] + delta["drop_cloud_no_boxes"] \
+        accounted = delta["frames_published"] + delta["drop_superseded"] + delta["drop_stale"] \
+            + delta["drop_cloud_no_boxes"] \
             + delta["drop_boxes_no_cloud"] + delta["drop_cloud_overflow"] + int(diag["pending_clouds"])
         print(f"accounting: published {delta['frames_published']} + superseded {delta['drop_superseded']} + "
+              f"stale {delta['drop_stale']} + "
               f"cloud_no_boxes {delta['drop_cloud_no_boxes']} + boxes_no_cloud {delta['drop_boxes_no_cloud']} + "
               f"overflow {delta['drop_cloud_overflow']} + pending {int(diag['pending_clouds'])} = {accounted} "
               f"of {len(sent)} sent")

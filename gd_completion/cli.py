@@ -1,4 +1,4 @@
-"""`gd-completion`: offline tools (convert, complete, play, render, train, evaluate, demo)."""
+"""`gd-completion`: offline tools (convert, complete, play, render, train, train-refiner, evaluate, demo)."""
 from __future__ import annotations
 
 import argparse
@@ -12,6 +12,7 @@ from gd_completion.errors import GDCompletionError
 SUBCOMMANDS = {
     "demo": "gd_completion.tools.demo",
     "train": "gd_completion.tools.train",
+    "train-refiner": "gd_completion.tools.train_refiner",
     "convert": "gd_completion.tools.convert",
     "complete": "gd_completion.tools.complete",
     "complete-cloud": "gd_completion.tools.complete_cloud",

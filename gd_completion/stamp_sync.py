@@ -1,7 +1,9 @@
 """Pure-Python pairing of clouds and boxes by header stamp, with bounded buffers and drop counters."""
 from __future__ import annotations
 
+import statistics
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, fields
@@ -15,6 +17,7 @@ T = TypeVar("T")
 SYNC_TOLERANCE_S = 0.05  # largest stamp difference between a cloud and its boxes
 SYNC_MAX_WAIT_S = 1.0  # how long a cloud (or boxes message) waits for its partner
 SYNC_QUEUE_SIZE = 10  # messages buffered per stream while waiting
+FRESH_FRAME_AGE_S = 0.05  # the node holds a frame that waited longer for the next one due within it too
 
 
 def stamp_to_ns(stamp) -> int:
@@ -192,14 +195,22 @@ class RecordingSync(Generic[C, B]):
 
 
 class LatestSlot(Generic[T]):
-    """A size-1 hand-over between threads: a new item replaces one not yet taken (counted in `replaced`)."""
+    """A size-1 hand-over between threads: a new item replaces one not yet taken (counted in `replaced`).
 
-    def __init__(self) -> None:
+    `take(fresh_age=...)` trades a few items for freshness when the taker is slower than the producer: an item
+    that has waited longer than `fresh_age` is held back for the next one when that is due (by the median
+    interval of the recent puts) within `fresh_age` too, and replaced by it if it comes in time (counted in
+    `stale`)."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic, period_window: int = 16) -> None:
         self._cond = threading.Condition()
+        self._clock = clock
         self._item: T | None = None
         self._full = False
         self._closed = False
+        self._put_times: deque[float] = deque(maxlen=period_window)
         self.replaced = 0
+        self.stale = 0
 
     def put(self, item: T) -> bool:
         """Store `item`; returns True when it replaced an item nobody had taken."""
@@ -207,18 +218,40 @@ class LatestSlot(Generic[T]):
             replaced = self._full
             self.replaced += int(replaced)
             self._item, self._full = item, True
+            self._put_times.append(self._clock())
             self._cond.notify()
             return replaced
 
-    def take(self, timeout: float | None = None) -> T | None:
-        """Wait for an item (None on timeout or after `close()`)."""
+    def period(self) -> float | None:
+        """Median interval (s) between the recent puts; None before the third."""
+        with self._cond:
+            times = list(self._put_times)
+        return statistics.median(b - a for a, b in zip(times, times[1:])) if len(times) >= 3 else None
+
+    def take(self, timeout: float | None = None, fresh_age: float = 0.0) -> T | None:
+        """Wait for an item (None on timeout or after `close()`); with `fresh_age` > 0 a stale one may be held
+        back for the next (see the class)."""
         with self._cond:
             if not self._cond.wait_for(lambda: self._full or self._closed, timeout):
                 return None
             if not self._full:
                 return None
             item, self._item, self._full = self._item, None, False
+            if fresh_age <= 0:
+                return item
+            now, put_at = self._clock(), self._put_times[-1]
+        period = self.period()
+        if period is None or now - put_at <= fresh_age:
             return item
+        due = put_at + period - now
+        if not 0.0 < due <= fresh_age:
+            return item
+        with self._cond:   # the next item may be a little late: a quarter period of slack
+            if not self._cond.wait_for(lambda: self._full or self._closed, due + period / 4) or not self._full:
+                return item
+            newer, self._item, self._full = self._item, None, False
+            self.stale += 1
+            return newer
 
     def close(self) -> None:
         """Wake any waiting `take()` for good."""

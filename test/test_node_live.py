@@ -156,9 +156,10 @@ def test_slow_model_newest_frame_wins(marker_node, frames):
     stamps = [client.send(frames[4]) for _ in range(6)]
     assert client.wait_reply(stamps[-1]) is not None
     assert client.wait_diagnostics(base, {"drop_superseded": 1})["drop_superseded"] >= 1
-    # every frame is answered or counted: superseded in the size-1 slot, or (a cloud lost by best-effort
-    # transport or the reader's KEEP_LAST history) its boxes dropped as boxes_no_cloud
-    keys = ("frames_published", "drop_superseded", "drop_boxes_no_cloud", "drop_cloud_no_boxes")
+    # every frame is answered or counted: superseded in the size-1 slot, held while stale and replaced by
+    # the next, or (a cloud lost by best-effort transport or the reader's KEEP_LAST history) its boxes
+    # dropped as boxes_no_cloud
+    keys = ("frames_published", "drop_superseded", "drop_stale", "drop_boxes_no_cloud", "drop_cloud_no_boxes")
     end = time.monotonic() + 10.0
     while time.monotonic() < end:
         deltas = {k: client.diag.get(k, 0) - base.get(k, 0) for k in keys}

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -129,6 +130,75 @@ def test_latest_slot_wakes_waiting_taker_and_close():
     slot.close()
     t.join(2)
     assert not t.is_alive() and got == ["x", None]
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _slot_fed_every(period: float, puts: int) -> tuple[LatestSlot[str], FakeClock]:
+    clock = FakeClock()
+    slot: LatestSlot[str] = LatestSlot(clock=clock)
+    for i in range(puts):
+        clock.now = i * period
+        slot.put(f"item{i}")
+    return slot, clock
+
+
+def test_latest_slot_period_is_the_median_put_interval():
+    slot, _ = _slot_fed_every(0.1, 2)
+    assert slot.period() is None
+    slot, _ = _slot_fed_every(0.1, 5)
+    assert slot.period() == pytest.approx(0.1)
+
+
+def test_latest_slot_swaps_a_stale_item_for_the_next_when_it_comes():
+    # puts every 10 s (fake clock); taken 6 s after the last put with fresh_age 5: the next is due in 4 s <= 5
+    slot, clock = _slot_fed_every(10.0, 4)
+    clock.now = 36.0
+    got: list = []
+    taker = threading.Thread(target=lambda: got.append(slot.take(timeout=1, fresh_age=5.0)))
+    taker.start()
+    for _ in range(500):   # until the taker holds the stale item
+        if not slot._full:
+            break
+        time.sleep(0.01)
+    time.sleep(0.05)
+    slot.put("fresh")
+    taker.join(10)
+    assert got == ["fresh"] and slot.stale == 1 and slot.replaced == 3   # 3: the puts before the take
+
+
+def test_latest_slot_completes_a_stale_item_when_nothing_newer_comes():
+    slot, clock = _slot_fed_every(0.1, 4)
+    clock.now = 0.36   # 60 ms old, next due in 40 ms: held, then given back when nothing comes
+    assert slot.take(timeout=1, fresh_age=0.05) == "item3" and slot.stale == 0
+
+
+@pytest.mark.parametrize("taken_at, fresh_age", [(0.33, 0.05),   # 30 ms old: fresh enough
+                                                 (0.36, 0.0),    # holding disabled
+                                                 (0.45, 0.05)])  # older than a period: the next is late, no hold
+def test_latest_slot_does_not_hold_without_cause(taken_at, fresh_age):
+    slot, clock = _slot_fed_every(0.1, 4)
+    clock.now = taken_at
+    assert slot.take(timeout=1, fresh_age=fresh_age) == "item3"
+
+
+def test_latest_slot_does_not_hold_when_the_next_is_due_later_than_fresh_age():
+    slot, clock = _slot_fed_every(100.0, 4)   # slow input: taken 0.1 s after a put, the next due in 99.9 s
+    clock.now = 300.1
+    done = threading.Event()
+    got: list = []
+
+    def take() -> None:
+        got.append(slot.take(timeout=1, fresh_age=0.05))
+        done.set()
+    threading.Thread(target=take).start()
+    assert done.wait(30) and got == ["item3"]   # a hold would last 100 s
 
 
 def test_recording_sync_decides_every_cloud_once():

@@ -42,6 +42,9 @@ class GGDConfig:
     box_conditioning: bool = False
     # local features also group the input's mirror image (y -> -y): the deformation sees the likely unseen side
     mirror_local_features: bool = False
+    # a BoxRefiner first estimates the true box in the given box's frame; the network completes in that frame
+    # and maps its points back (needs box_conditioning; docs/MODEL.md, "Box refinement")
+    box_refinement: bool = False
 
     def __post_init__(self) -> None:
         for name in _TUPLE_FIELDS:
@@ -65,6 +68,8 @@ class GGDConfig:
             problems.append("radius, ball_m, knn_k, gcn_width must be positive, gcn_blocks >= 0")
         if self.knn_k >= self.num_output:
             problems.append("knn_k must be < num_output")
+        if self.box_refinement and not self.box_conditioning:
+            problems.append("box_refinement needs box_conditioning (the refiner reads the box shape)")
         if problems:
             raise ValueError("invalid GGDConfig: " + "; ".join(problems))
 

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from .box_refiner import BoxFrame, BoxRefiner, from_frame, refined_shape, to_frame
 from .config import GGDConfig
 from .ops import ball_group, farthest_point_sample, flat_index, gather_points, knn_graph, neighbour_mean
 
@@ -29,6 +30,8 @@ class GGDOutput(NamedTuple):
     generated: Tensor         # P_g (B, N_o, 3) = concat(P_c, P_s)
     neighbours: Tensor        # kNN graph of P_g (B, N_o, k), used by the Laplacian loss
     control_index: Tensor     # (B, N_c) indices of P_c in the input
+    frame: Tensor             # (B, 7) the box it completed in, in the given box's frame (box_refiner.BoxFrame
+                              # vector; zeros = the given box, always without a box refiner)
 
 
 class LinearBN(nn.Module):
@@ -273,6 +276,7 @@ class GGDNet(nn.Module):
         self.decoder = TreeDecoder(self.config)
         self.local = LocalFeatures(self.config)
         self.deform = GResNet(self.config, self.local.out_dim)
+        self.refiner = BoxRefiner() if self.config.box_refinement else None
 
     def _check(self, partial: Tensor, shape: Tensor | None) -> None:
         if partial.dim() != 3 or partial.shape[-1] != 3:
@@ -312,16 +316,32 @@ class GGDNet(nn.Module):
         shapes = shape.split(step) if shape is not None else [None] * len(partial.split(step))
         return list(zip(partial.split(step), order.split(step), shapes))
 
+    def _refine(self, partial: Tensor, shape: Tensor | None) -> tuple[Tensor, Tensor | None, BoxFrame | None]:
+        """(partial, shape) in the refined box's frame and that frame; unchanged and None without a refiner.
+        In eval mode the refiner runs one chunk at a time, like the rest (batch-independent results)."""
+        if self.refiner is None or shape is None:
+            return partial, shape, None
+        if not self.training and partial.shape[0] > self.eval_batch_chunk > 0:
+            step = self.eval_batch_chunk
+            vector = torch.cat([self.refiner.vector(p, s) for p, s in zip(partial.split(step), shape.split(step))])
+        else:
+            vector = self.refiner.vector(partial, shape)
+        frame = BoxFrame.from_vector(vector)
+        return to_frame(partial, frame), refined_shape(shape, frame), frame
+
     def generate(self, partial: Tensor, box_shape: Tensor | None = None) -> Tensor:
         """Generation-only branch (ablation baseline): P_g = concat(P_c, P_s), (B, N_o, 3)."""
         shape = self._shape(box_shape, partial)
         self._check(partial, shape)
+        partial, shape, frame = self._refine(partial, shape)
         order = self._order(partial)
         if not self.training and partial.shape[0] > self.eval_batch_chunk > 0:   # same chunks as forward
             parts = [self._generate(*chunk) for chunk in self._chunks(partial, order, shape)]
-            return torch.cat([torch.cat([p[2], p[1]], 1) for p in parts], 0)
-        _, coarse, control, _, _ = self._generate(partial, order, shape)
-        return torch.cat([control, coarse], 1)
+            generated = torch.cat([torch.cat([p[2], p[1]], 1) for p in parts], 0)
+        else:
+            _, coarse, control, _, _ = self._generate(partial, order, shape)
+            generated = torch.cat([control, coarse], 1)
+        return generated if frame is None else from_frame(generated, frame)
 
     # Eval mode runs the batch one cloud at a time after one batched FPS: per-cloud tensors stay in
     # cache (on CPU as fast as or faster than chunks of 4 or 16), and every cloud's result is bitwise
@@ -334,11 +354,18 @@ class GGDNet(nn.Module):
         of the boxes' sizes), which other models ignore."""
         shape = self._shape(box_shape, partial)
         self._check(partial, shape)
+        partial, shape, frame = self._refine(partial, shape)
         order = self._order(partial)    # one FPS loop for the whole batch
         if not self.training and partial.shape[0] > self.eval_batch_chunk > 0:
             parts = [self._forward(*chunk) for chunk in self._chunks(partial, order, shape)]
-            return GGDOutput(*(torch.cat(ts, 0) for ts in zip(*parts)))
-        return self._forward(partial, order, shape)
+            out = GGDOutput(*(torch.cat(ts, 0) for ts in zip(*parts)))
+        else:
+            out = self._forward(partial, order, shape)
+        if frame is None:
+            return out
+        back = {name: from_frame(getattr(out, name), frame)
+                for name in ("coarse", "control", "control_deformed", "completion", "generated")}
+        return out._replace(**back, frame=frame.to_vector())
 
     def _forward(self, partial: Tensor, order: Tensor, shape: Tensor | None) -> GGDOutput:
         code, coarse, control, control_index, order = self._generate(partial, order, shape)
@@ -351,7 +378,8 @@ class GGDNet(nn.Module):
         x = torch.cat([self.local(p_g, partial, order), p_g, label], -1)
         p_o = p_g + self.deform(x, code, knn)
         return GGDOutput(coarse=coarse, control=control, control_deformed=p_o[:, :nc], completion=p_o,
-                         generated=p_g, neighbours=knn, control_index=control_index)
+                         generated=p_g, neighbours=knn, control_index=control_index,
+                         frame=torch.zeros(b, 7, dtype=p_o.dtype, device=p_o.device))
 
     def num_parameters(self) -> int:
         """Number of trainable parameters."""

@@ -235,7 +235,7 @@ class CompleterNode(Node):
 
     def _work(self) -> None:
         while not self._stopping.is_set():
-            item = self._slot.take(timeout=0.5)
+            item = self._slot.take(timeout=0.5, fresh_age=self.params.fresh_frame_age)
             if item is None:
                 continue
             try:
@@ -299,6 +299,7 @@ class CompleterNode(Node):
             values["frames_paired" if key == "paired" else f"drop_{key}"] = n
         clouds, boxes = self.sync.pending
         values["pending_clouds"], values["pending_boxes"] = clouds, boxes
+        values["drop_stale"] = self._slot.stale
         if self.completer.fusion is not None:
             values.update(self.completer.fusion.counters)
         return values

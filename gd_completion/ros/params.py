@@ -14,7 +14,7 @@ from gd_completion.errors import BoxError, GDCompletionError
 from gd_completion.fusion import FusionLimits
 from gd_completion.limits import FrameLimits
 from gd_completion.pipeline import LABEL_IDS
-from gd_completion.stamp_sync import SYNC_MAX_WAIT_S, SYNC_QUEUE_SIZE, SYNC_TOLERANCE_S
+from gd_completion.stamp_sync import FRESH_FRAME_AGE_S, SYNC_MAX_WAIT_S, SYNC_QUEUE_SIZE, SYNC_TOLERANCE_S
 
 BOXES_TYPES = ("auto", "detection3d", "marker")
 
@@ -43,6 +43,7 @@ class CompleterParams:
     sync_tolerance: float
     sync_max_wait: float
     queue_size: int
+    fresh_frame_age: float
     include_input_points: bool
     measured_merge: bool
     limits: FrameLimits
@@ -96,6 +97,12 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                       _float(0.01, 60.0)),
     "queue_size": (SYNC_QUEUE_SIZE, "Clouds and boxes messages buffered per stream while waiting for their partner.",
                    _int(1, 1000)),
+    "fresh_frame_age": (FRESH_FRAME_AGE_S, "Seconds; when the node is slower than its input, a paired frame that "
+                                           "has waited longer than this for the worker is held back for the next "
+                                           "frame if that is due within this time too, and replaced by it "
+                                           "(drop_stale); else it is completed as is. Fewer frames answered, lower "
+                                           "latency. 0 = complete the newest pending frame whatever its age.",
+                        _float(0.0, 10.0)),
     "include_input_points": (True, "Also publish the measured points of each completed vehicle (generated=0); "
                                    "without them, a merged completion's own measured points still carry "
                                    "generated=0.", {}),
@@ -144,7 +151,7 @@ LIMIT_PARAMETERS = {"max_boxes": "max_boxes", "max_box_length": "max_box_length"
 # Applied while the node runs (`ros2 param set`); every other parameter is declared read-only, so a set
 # is refused with rclpy's reason instead of reporting success and changing nothing.
 LIVE_PARAMETERS = frozenset({"min_points", "crop_margin", "labels", "class_map", "sync_tolerance", "sync_max_wait",
-                             "include_input_points", "measured_merge", *LIMIT_PARAMETERS})
+                             "fresh_frame_age", "include_input_points", "measured_merge", *LIMIT_PARAMETERS})
 # Parameters every rclpy node may be given, besides the completer's own.
 STANDARD_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service", "start_parameter_services"})
 

@@ -206,6 +206,24 @@ def tree_arity_for(n_points: int) -> list[int]:
     return arity
 
 
+def dataset_specs(args: argparse.Namespace, config: GGDConfig, options: SampleOptions
+                  ) -> tuple[DatasetSpec, DatasetSpec]:
+    """The training and validation data sets of a run (`args`: this command's options after its recipe)."""
+    spec = DatasetSpec(args.samples, args.seed, config.num_input, config.num_output, args.meshes, options=options)
+    return spec, dataclasses.replace(spec, n_samples=args.val_samples, seed=args.seed + VALIDATION_SEED_OFFSET)
+
+
+def recipe_datasets(recipe: Path, cache: Path, workers: int) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The training and validation data sets of training recipe `recipe`, loaded from `cache` when it holds
+    them (`cached_dataset`), else generated there."""
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["train"])
+    apply_recipe(args, recipe)
+    spec, val_spec = dataset_specs(args, load_config(args), sampling_options(args.sampling))
+    return cached_dataset(cache, "train", spec, workers), cached_dataset(cache, "val", val_spec, workers)
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -218,10 +236,8 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args)
     make_folder(args.output)  # an unwritable output fails before any work
     cache = make_folder(args.cache or args.output)
-    spec = DatasetSpec(args.samples, args.seed, config.num_input, config.num_output, args.meshes,
-                       options=options)
+    spec, val_spec = dataset_specs(args, config, options)
     train_data = cached_dataset(cache, "train", spec, args.workers)
-    val_spec = dataclasses.replace(spec, n_samples=args.val_samples, seed=args.seed + VALIDATION_SEED_OFFSET)
     val_data = cached_dataset(cache, "val", val_spec, args.workers)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,

@@ -1,0 +1,66 @@
+"""`gd-completion train-refiner`: train the box refiner of a GGD-Net checkpoint on the data sets of training recipes."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from gd_completion.atomic import atomic_path, make_folder
+from gd_completion.errors import DataFormatError
+
+# Keys of a refiner recipe (recipes/box_refiner*.json) besides "name" and "notes".
+RECIPE_KEYS = ("base", "data", "epochs", "batch_size", "lr", "seed")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("train-refiner", help="train the box refiner of a GGD-Net checkpoint",
+                                   description=__doc__)
+    parser.add_argument("--recipe", type=Path, required=True,
+                        help="JSON recipe: base (a box-conditioned checkpoint), data (training recipes whose data "
+                        "sets, made with box noise, are used: training and validation sets), epochs, batch_size, "
+                        "lr, seed")
+    parser.add_argument("--output", type=Path, default=None, help="run folder (default runs/<recipe name>)")
+    parser.add_argument("--cache", type=Path, default=Path("runs/cache"),
+                        help="folder of the data sets (`gd-completion train --cache`; missing ones are generated)")
+    parser.add_argument("--workers", type=int, default=2, help="processes generating missing data (default 2)")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    parser.add_argument("--resume", action="store_true", help="continue from OUTPUT/last.pt")
+    parser.set_defaults(func=run)
+
+
+def read_recipe(path: Path) -> dict[str, Any]:
+    """The recipe's keys, checked; DataFormatError naming the file otherwise."""
+    try:
+        recipe = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DataFormatError(f"{path}: cannot read the recipe ({exc})") from exc
+    if not isinstance(recipe, dict):
+        raise DataFormatError(f"{path}: a recipe is a JSON object")
+    unknown = sorted(set(recipe) - set(RECIPE_KEYS) - {"name", "notes"})
+    missing = [k for k in ("base", "data") if k not in recipe]
+    if unknown or missing:
+        raise DataFormatError(f"{path}: unknown keys {unknown}, missing keys {missing} (keys: {list(RECIPE_KEYS)})")
+    if not isinstance(recipe["data"], list) or not recipe["data"]:
+        raise DataFormatError(f"{path}: data must be a non-empty list of training recipes")
+    return recipe
+
+
+def run(args: argparse.Namespace) -> int:
+    from gd_completion.tools.train import recipe_datasets
+    from gd_completion.train_refiner import FrameData, RefinerSettings, train_refiner
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    recipe = read_recipe(args.recipe)
+    output = make_folder(args.output or Path("runs") / recipe.get("name", args.recipe.stem))
+    cache = make_folder(args.cache)
+    sets = [recipe_datasets(Path(r), cache, args.workers) for r in recipe["data"]]
+    settings = RefinerSettings(**{k: recipe[k] for k in ("epochs", "batch_size", "lr", "seed") if k in recipe},
+                               device=args.device)
+    with atomic_path(output / "settings.json") as tmp:
+        tmp.write_text(json.dumps({"recipe": str(args.recipe), **recipe}, indent=2))
+    result = train_refiner(Path(recipe["base"]), FrameData.from_datasets([t for t, _ in sets]),
+                           FrameData.from_datasets([v for _, v in sets]), output, settings, resume=args.resume)
+    print(f"train-refiner: {result.epochs_done} epochs, best checkpoint {result.best_path}, last {result.last_path}")
+    return 0

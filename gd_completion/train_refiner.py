@@ -1,0 +1,194 @@
+"""Training of a GGDNet's box refiner (`model.box_refiner`) on pairs with box noise; the rest stays frozen.
+
+The data are the synthetic training pairs (`synth.dataset`): each knows the error of the box it was cropped
+and normalised with, so the true box in that box's frame (`box_refiner.frame_targets`) is the target. Every
+epoch writes a whole GGDNet checkpoint (`box_refinement`: the completion network's weights and the refiner's):
+`last.pt` (resumable) and `best.pt` (lowest validation loss).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.nn.functional import smooth_l1_loss
+
+from .errors import CheckpointError, DataFormatError
+from .model.box_refiner import frame_targets
+from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
+from .model.network import GGDNet, box_shape
+from .preprocess import Preprocessing
+from .train import PROGRESS_STEPS, TrainResult
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RefinerSettings:
+    """Optimisation settings of the refiner (Adam; the learning rate warms up over the first 5 % of the steps,
+    then falls to 1 % of `lr` by a cosine)."""
+
+    epochs: int = 6
+    batch_size: int = 64
+    lr: float = 1e-3
+    seed: int = 0
+    device: str = "cpu"
+
+    def lr_at(self, step: int, total: int) -> float:
+        """Learning rate of the 0-based optimisation `step` of `total`."""
+        warm = max(1, total // 20)
+        if step < warm:
+            return self.lr * (step + 1) / warm
+        t = min(1.0, (step - warm) / max(1, total - warm))
+        return self.lr * (0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * t)))
+
+
+@dataclass(frozen=True)
+class FrameData:
+    """Network inputs (S, N, 3) normalised by the boxes used, their box shapes (S, 2), true frames (S, 7)."""
+
+    partial: torch.Tensor
+    shape: torch.Tensor
+    target: torch.Tensor
+
+    @classmethod
+    def from_datasets(cls, datasets: Sequence[dict[str, Any]]) -> FrameData:
+        """From `synth.dataset` data sets (each needs `box_noise`, `yaw`, `size`, `true_size`)."""
+        parts = []
+        for data in datasets:
+            missing = [k for k in ("partial", "box_noise", "yaw", "size", "true_size") if k not in data]
+            if missing:
+                raise DataFormatError(f"box refiner data: a data set without {missing} (made before box noise)")
+            parts.append((np.asarray(data["partial"], np.float32), box_shape(data["size"]).numpy(),
+                          frame_targets(data["box_noise"], data["yaw"], data["size"], data["true_size"])))
+        if not parts:
+            raise DataFormatError("box refiner data: no data sets")
+        return cls(*(torch.from_numpy(np.concatenate(p)) for p in zip(*parts)))
+
+    def __len__(self) -> int:
+        return self.partial.shape[0]
+
+
+def with_refiner(model: GGDNet) -> GGDNet:
+    """`model` with a fresh (identity) box refiner added, or itself when it has one."""
+    if model.refiner is not None:
+        return model
+    refined = GGDNet(replace(model.config, box_refinement=True))
+    missing, unexpected = refined.load_state_dict(model.state_dict(), strict=False)
+    assert not unexpected and all(k.startswith("refiner.") for k in missing), (missing, unexpected)
+    return refined
+
+
+def mirrored_batch(partial: torch.Tensor, target: torch.Tensor, flip: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Samples with `flip` mirrored about the box's vertical longitudinal plane (y -> -y): a mirrored vehicle
+    is a vehicle, and its true box is mirrored too (centre y and yaw change sign)."""
+    sign = 1.0 - 2.0 * flip.to(partial.dtype)
+    partial = partial * torch.stack([torch.ones_like(sign), sign, torch.ones_like(sign)], 1)[:, None]
+    target = target.clone()
+    target[:, 1] *= sign
+    target[:, 3] *= sign
+    return partial, target
+
+
+def frame_loss(model: GGDNet, partial: torch.Tensor, shape: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Smooth L1 between the refiner's frame and the true one, in `box_refiner.FRAME_UNITS`."""
+    units = model.refiner.units
+    return smooth_l1_loss(model.refiner.vector(partial, shape) / units, target / units)
+
+
+@torch.inference_mode()
+def validate(model: GGDNet, data: FrameData, device: torch.device | str, batch: int = 256) -> dict[str, float]:
+    """Loss and the RMS error of each frame value in FRAME_UNITS, the refiner's and the given box's."""
+    was_training = model.training
+    model.eval()
+    preds = [model.refiner.vector(data.partial[s:s + batch].to(device), data.shape[s:s + batch].to(device)).cpu()
+             for s in range(0, len(data), batch)]
+    model.train(was_training)
+    pred, units = torch.cat(preds), model.refiner.units.cpu()
+    names = ("x", "y", "z", "yaw", "log_length", "log_width", "log_height")
+    rms = ((pred - data.target) ** 2).mean(0).sqrt() / units
+    given = (data.target ** 2).mean(0).sqrt() / units
+    return {"loss": float(smooth_l1_loss(pred / units, data.target / units)),
+            **{f"rms_{n}": float(v) for n, v in zip(names, rms)},
+            **{f"given_rms_{n}": float(v) for n, v in zip(names, given)}}
+
+
+def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, out_dir: str | Path,
+                  settings: RefinerSettings | None = None, *, resume: bool = False,
+                  preprocessing: Preprocessing | None = None) -> TrainResult:
+    """Train the box refiner of GGDNet checkpoint `base` (one is added when it has none) with everything else
+    frozen; `resume` continues from `out_dir/last.pt`. Checkpoints keep `base`'s preprocessing contract."""
+    settings = settings or RefinerSettings()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    last_path, best_path = out_dir / "last.pt", out_dir / "best.pt"
+    device = torch.device(settings.device)
+    torch.manual_seed(settings.seed)
+    base_data = read_checkpoint(base)
+    preprocessing = preprocessing or Preprocessing.from_dict(base_data.get("preprocessing"))
+    model = with_refiner(model_from_checkpoint(base_data, base))
+    if not model.config.box_conditioning:
+        raise CheckpointError(f"checkpoint {base}: the box refiner needs a box-conditioned model")
+    steps_per_epoch = len(train_data) // settings.batch_size
+    if steps_per_epoch < 1:
+        raise DataFormatError(f"box refiner data: {len(train_data)} samples, fewer than one batch")
+    for p in model.parameters():
+        p.requires_grad_(False)
+    for p in model.refiner.parameters():
+        p.requires_grad_(True)
+    optimizer = torch.optim.Adam(model.refiner.parameters(), lr=settings.lr)
+    total_steps = settings.epochs * steps_per_epoch
+    start_epoch, history, best = 0, [], math.inf
+    if resume and last_path.is_file():
+        data = read_checkpoint(last_path)
+        if not {"optimizer", "epoch"} <= set(data):
+            raise CheckpointError(f"checkpoint {last_path}: not a resumable refiner checkpoint")
+        model.load_state_dict(data["state_dict"])
+        optimizer.load_state_dict(data["optimizer"])
+        start_epoch, history, best = int(data["epoch"]), list(data.get("history", [])), float(data["best_loss"])
+        log.info("resuming from %s at epoch %d", last_path, start_epoch)
+    model.to(device).eval()          # the completion network's batch norms stay as they are
+    model.refiner.train()
+    log.info("training the box refiner (%d parameters) on %d samples, validating on %d, device %s",
+             sum(p.numel() for p in model.refiner.parameters()), len(train_data), len(val_data), device)
+    for epoch in range(start_epoch, settings.epochs):
+        g = torch.Generator().manual_seed(settings.seed * 100003 + epoch)   # resumable shuffling and mirroring
+        perm = torch.randperm(len(train_data), generator=g)
+        flips = torch.rand(len(train_data), generator=g) < 0.5
+        total, t0 = 0.0, time.monotonic()
+        for step in range(steps_per_epoch):
+            idx = perm[step * settings.batch_size:(step + 1) * settings.batch_size]
+            partial, target = mirrored_batch(train_data.partial[idx], train_data.target[idx], flips[idx])
+            loss = frame_loss(model, partial.to(device), train_data.shape[idx].to(device), target.to(device))
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            for group in optimizer.param_groups:
+                group["lr"] = settings.lr_at(epoch * steps_per_epoch + step, total_steps)
+            optimizer.step()
+            total += loss.item()
+            if (step + 1) % PROGRESS_STEPS == 0:
+                log.info("epoch %d step %d/%d loss %.4f (%.1f s)", epoch + 1, step + 1, steps_per_epoch,
+                         total / (step + 1), time.monotonic() - t0)
+        record = {"epoch": epoch + 1, "seconds": time.monotonic() - t0, "train_loss": total / steps_per_epoch,
+                  **{f"val_{k}": v for k, v in validate(model, val_data, device).items()}}
+        history.append(record)
+        log.info("epoch %d/%d loss %.4f | val loss %.4f, RMS in units (given box): %s | %.1fs", epoch + 1,
+                 settings.epochs, record["train_loss"], record["val_loss"],
+                 ", ".join(f"{n} {record[f'val_rms_{n}']:.3f} ({record[f'val_given_rms_{n}']:.3f})"
+                           for n in ("x", "y", "z", "yaw", "log_length", "log_width", "log_height")),
+                 record["seconds"])
+        extra = {"epoch": epoch + 1, "history": history, "settings": asdict(settings), "best_loss": best,
+                 "base": str(base)}
+        if record["val_loss"] < best:
+            best = extra["best_loss"] = record["val_loss"]
+            save_checkpoint(best_path, model, preprocessing, **extra)
+        save_checkpoint(last_path, model, preprocessing, optimizer=optimizer.state_dict(), **extra)
+    return TrainResult(out_dir=out_dir, last_path=last_path, best_path=best_path if best_path.is_file() else None,
+                       epochs_done=settings.epochs, stopped_early=False, history=history)

@@ -1,0 +1,146 @@
+"""Box refinement: frame maths against synthetic pairs whose box error is known, the refined GGDNet's contract,
+and a refiner that learns a known offset (train_refiner, resumable, a whole checkpoint)."""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from gd_completion.errors import DataFormatError
+from gd_completion.model.box_refiner import FRAME_UNITS, BoxFrame, frame_targets, from_frame, refined_shape, to_frame
+from gd_completion.model.checkpoint import load_checkpoint, save_checkpoint
+from gd_completion.model.config import GGDConfig
+from gd_completion.model.network import GGDNet, box_shape
+from gd_completion.synth.dataset import SampleOptions, make_sample, sample_rng
+from gd_completion.tools.train_refiner import read_recipe
+from gd_completion.train_refiner import FrameData, RefinerSettings, mirrored_batch, train_refiner, with_refiner
+
+TINY = GGDConfig(num_input=64, num_output=96, num_control=32, encoder_h0=(16, 32), encoder_h1=(32,),
+                 code_hidden=(32,), code_dim=32, tree_arity=(4, 4, 4), tree_node_dim=8, tree_hidden=(32, 16),
+                 radius=0.2, ball_m=4, local_widths=(8, 8), knn_k=4, gcn_width=16, gcn_blocks=1,
+                 box_conditioning=True)
+
+
+def _frame(b: int, seed: int = 0) -> BoxFrame:
+    g = torch.Generator().manual_seed(seed)
+    return BoxFrame.from_vector(torch.randn(b, 7, generator=g) * torch.tensor(FRAME_UNITS))
+
+
+def _bbox_centre(points: np.ndarray) -> np.ndarray:
+    return (points.min(0) + points.max(0)) / 2
+
+
+def test_to_frame_and_from_frame_are_inverse():
+    points = torch.rand(3, 50, 3) - 0.5
+    frame = _frame(3)
+    assert torch.allclose(from_frame(to_frame(points, frame), frame), points, atol=1e-6)
+    assert not torch.allclose(to_frame(points, frame), points, atol=1e-3)
+    assert torch.allclose(BoxFrame.from_vector(frame.to_vector()).scale, frame.scale)
+
+
+def test_frame_targets_put_the_true_vehicle_at_the_origin():
+    """Synthetic pairs cropped with a noisy box: their targets move the complete vehicle (normalised by the
+    noisy box) to the centre of the frame and length 1; mirrored, the mirrored targets do the same."""
+    opts = SampleOptions(box_noise_prob=1.0, box_center_sigma=0.3, box_yaw_sigma_deg=8.0, tilt_deg=0.0)
+    before, after, mirrored_after = [], [], []
+    for i in range(6):
+        partial, complete, meta = make_sample(sample_rng(7, i), "sedan", n_input=64, n_gt=512, options=opts)
+        target = frame_targets(meta["box_noise"][None], np.array([meta["yaw"]]), meta["size"][None],
+                               meta["true_size"][None])
+        gt = torch.from_numpy(complete)[None]
+        placed = to_frame(gt, BoxFrame.from_vector(torch.from_numpy(target)))[0].numpy()
+        before.append(np.abs(_bbox_centre(complete)[:2]).max())
+        after.append(np.abs(_bbox_centre(placed)).max())
+        assert np.ptp(placed[:, 0]) == pytest.approx(1.0, abs=0.03)    # the true length is 1
+        flipped_gt, flipped_target = mirrored_batch(gt, torch.from_numpy(target), torch.tensor([True]))
+        mirrored = to_frame(flipped_gt, BoxFrame.from_vector(flipped_target))[0].numpy()
+        mirrored_after.append(np.abs(_bbox_centre(mirrored)).max())
+    assert max(after) < 0.02 and max(mirrored_after) < 0.02 and max(before) > 0.03, (before, after)
+
+
+def test_an_identity_refiner_keeps_the_network_output():
+    torch.manual_seed(0)
+    base = GGDNet(TINY).eval()
+    refined = with_refiner(base).eval()
+    assert refined.config.box_refinement and refined.refiner is not None
+    partial, shape = torch.rand(3, 64, 3) - 0.5, box_shape([[4.5, 1.8, 1.5]] * 3)
+    with torch.inference_mode():
+        a, b = base(partial, shape), refined(partial, shape)
+    assert torch.equal(a.completion, b.completion) and torch.equal(a.coarse, b.coarse)
+
+
+def test_a_refined_network_completes_in_the_refined_frame_and_maps_back():
+    torch.manual_seed(0)
+    base = GGDNet(TINY).eval()
+    refined = with_refiner(base).eval()
+    frame = _frame(1, seed=3)
+    with torch.no_grad():   # a refiner that always answers `frame`
+        refined.refiner.out.bias.copy_(frame.to_vector()[0] / refined.refiner.units)
+    partial, shape = torch.rand(4, 64, 3) - 0.5, box_shape([[4.5, 1.8, 1.5], [5.0, 2.0, 1.6]] * 2)
+    frames = BoxFrame(*(t.expand(4, *t.shape[1:]) for t in frame))
+    with torch.inference_mode():
+        got = refined(partial, shape)
+        expected = base(to_frame(partial, frames), refined_shape(shape, frames))
+        generated = refined.generate(partial, shape)
+        one = refined(partial[2:3], shape[2:3])
+    assert torch.allclose(got.completion, from_frame(expected.completion, frames), atol=1e-5)
+    assert torch.allclose(generated, from_frame(expected.generated, frames), atol=1e-5)
+    assert torch.allclose(got.control, partial.gather(1, got.control_index[..., None].expand(-1, -1, 3)), atol=1e-5)
+    assert torch.equal(one.completion[0], got.completion[2])   # batch-independent in eval mode
+
+
+def test_box_refinement_needs_box_conditioning():
+    with pytest.raises(ValueError, match="box_conditioning"):
+        replace(TINY, box_conditioning=False, box_refinement=True)
+
+
+def _offset_data(n: int, seed: int) -> FrameData:
+    """Box-shaped clouds moved by a known centre offset (x, y) in the box frame, exact otherwise."""
+    g = torch.Generator().manual_seed(seed)
+    cloud = (torch.rand(n, 64, 3, generator=g) - 0.5) * torch.tensor([1.0, 0.4, 0.33])
+    offset = (torch.rand(n, 2, generator=g) - 0.5) * 0.16
+    target = torch.zeros(n, 7)
+    target[:, :2] = offset
+    cloud[..., :2] += offset[:, None]
+    return FrameData(cloud, box_shape([[4.5, 1.8, 1.5]] * n), target)
+
+
+def test_train_refiner_learns_a_known_offset_and_resumes(tmp_path):
+    torch.manual_seed(0)
+    base = tmp_path / "base.pt"
+    save_checkpoint(base, GGDNet(TINY))
+    train, val = _offset_data(512, 0), _offset_data(128, 1)
+    settings = RefinerSettings(epochs=12, batch_size=32, lr=3e-3)
+    first = train_refiner(base, train, val, tmp_path / "run", replace(settings, epochs=6))
+    resumed = train_refiner(base, train, val, tmp_path / "run", settings, resume=True)
+    assert len(first.history) == 6 and len(resumed.history) == 12
+    last = resumed.history[-1]
+    assert last["val_rms_x"] < 0.5 * last["val_given_rms_x"] and last["val_rms_y"] < 0.5 * last["val_given_rms_y"]
+    model, _ = load_checkpoint(first.best_path)
+    assert model.config.box_refinement and model.refiner is not None
+    before, _ = load_checkpoint(base)
+    after = model.state_dict()
+    assert all(torch.equal(after[k], v) for k, v in before.state_dict().items()), "the completion network is frozen"
+
+
+def test_frame_data_needs_the_box_error():
+    with pytest.raises(DataFormatError, match="box_noise"):
+        FrameData.from_datasets([{"partial": np.zeros((1, 4, 3)), "size": np.ones((1, 3))}])
+
+
+def test_refiner_recipe_is_checked(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"base": "x.pt", "data": [], "epoch": 3}))
+    with pytest.raises(DataFormatError, match="epoch"):
+        read_recipe(bad)
+
+
+def test_the_repository_refiner_recipe_names_what_exists():
+    from pathlib import Path
+    repo = Path(__file__).resolve().parents[1]
+    recipe = read_recipe(repo / "recipes" / "box_refiner.json")
+    assert (repo / recipe["base"]).is_file()
+    assert all((repo / r).is_file() for r in recipe["data"])
