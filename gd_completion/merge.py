@@ -32,32 +32,21 @@ class Merged:
         return self.measured_row >= 0
 
 
-def mirrored(points: np.ndarray, frame: np.ndarray | None = None) -> np.ndarray:
-    """Points of the normalised box frame mirrored about its longitudinal vertical plane (y -> -y), or about
-    that of the box `frame` (a `model.box_refiner.BoxFrame` vector (7,) in this frame: centre, yaw, ...)."""
-    points = np.asarray(points, np.float32)
-    if frame is None or not np.any(frame[[0, 1, 3]]):
-        return points * np.array([1.0, -1.0, 1.0], np.float32)
-    c, s = np.cos(2.0 * frame[3]), np.sin(2.0 * frame[3])
-    d = points[:, :2] - frame[:2]
-    out = points.copy()
-    out[:, 0] = frame[0] + c * d[:, 0] + s * d[:, 1]
-    out[:, 1] = frame[1] + s * d[:, 0] - c * d[:, 1]
-    return out
+def mirrored(points: np.ndarray) -> np.ndarray:
+    """Points of the normalised box frame mirrored about its longitudinal vertical plane (y -> -y)."""
+    return np.asarray(points, np.float32) * np.array([1.0, -1.0, 1.0], np.float32)
 
 
-def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None = None,
-                   frame: np.ndarray | None = None) -> Merged:
-    """Farthest point sampling of the union of `measured` (M, 3), its mirror image (about the plane of the
-    box `frame` the network completed in, when given: `mirrored`) and `completion` (N_o, 3), all finite and
-    in the normalised box frame, to `n` points (default N_o). Pass the measured points the
+def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None = None) -> Merged:
+    """Farthest point sampling of the union of `measured` (M, 3), its mirror image and `completion` (N_o, 3),
+    all finite and in the normalised box frame, to `n` points (default N_o). Pass the measured points the
     network saw (`merge_with_fed`) to bound the cost: about 1.5 ms for 512 measured and 2,048 completion
     points on one core. When the union holds fewer than `n` distinct points, all of them are kept and the
     completion's (else the mirror's) repeated."""
     completion = np.asarray(completion, np.float32).reshape(-1, 3)
     measured = np.asarray(measured, np.float32).reshape(-1, 3)
     n = len(completion) if n is None else int(n)
-    union = np.ascontiguousarray(np.concatenate([measured, mirrored(measured, frame), completion]))
+    union = np.ascontiguousarray(np.concatenate([measured, mirrored(measured), completion]))
     if not 0 < n <= len(union):
         raise ValueError(f"cannot keep {n} of {len(union)} points")
     if not np.isfinite(union).all():
@@ -75,8 +64,8 @@ def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None =
     return Merged(union[keep], np.where(keep < len(measured), keep, -1))
 
 
-def merge_with_fed(completion: np.ndarray, partial: np.ndarray, num_input: int, rows: np.ndarray | None = None,
-                   frame: np.ndarray | None = None) -> Merged:
+def merge_with_fed(completion: np.ndarray, partial: np.ndarray, num_input: int, rows: np.ndarray | None = None
+                   ) -> Merged:
     """`merge_measured` with the measured points the network was fed: the rows of `partial` that
     `preprocess.network_input(partial, num_input)` takes (`rows`, its `resample_indices`, computed when None;
     all rows of a smaller partial, without its cyclic repeats). `Merged.measured_row` indexes `partial`."""
@@ -84,5 +73,5 @@ def merge_with_fed(completion: np.ndarray, partial: np.ndarray, num_input: int, 
     if rows is None:
         rows = resample_indices(len(partial), partial, num_input)
     rows = np.asarray(rows)[:min(len(partial), num_input)]
-    merged = merge_measured(completion, partial[rows], frame=frame)
+    merged = merge_measured(completion, partial[rows])
     return Merged(merged.points, np.where(merged.is_measured, rows[np.maximum(merged.measured_row, 0)], -1))

@@ -227,10 +227,9 @@ class VehicleCompleter:
         with torch.inference_mode():   # thread-local: set in the thread that runs the model
             out = self.model(torch.from_numpy(partial[rows]).unsqueeze(0).to(self.device), shape)
             completion = out.completion[0].float().cpu().numpy()
-            frame = out.frame[0].double().cpu().numpy()
         if not merge:
             return completion, np.full(len(completion), -1, np.int64)
-        merged = merge_with_fed(completion, partial, self.num_input, rows, frame)
+        merged = merge_with_fed(completion, partial, self.num_input, rows)
         return merged.points, merged.measured_row
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],

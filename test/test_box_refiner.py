@@ -144,3 +144,22 @@ def test_the_repository_refiner_recipe_names_what_exists():
     recipe = read_recipe(repo / "recipes" / "box_refiner.json")
     assert (repo / recipe["base"]).is_file()
     assert all((repo / r).is_file() for r in recipe["data"])
+
+
+def test_the_shipped_weights_are_the_refiner_recipe_on_its_frozen_base():
+    """The shipped checkpoint is recipes/box_refiner.json's run: its settings, and its base's weights unchanged
+    (the refiner is the only part it trained)."""
+    from pathlib import Path
+
+    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, read_checkpoint_metadata
+    repo = Path(__file__).resolve().parents[1]
+    recipe = read_recipe(repo / "recipes" / "box_refiner.json")
+    meta = read_checkpoint_metadata(DEFAULT_WEIGHTS)
+    assert meta["epoch"] == recipe["epochs"] == len(meta["history"]) and meta["base"] == recipe["base"]
+    for key in ("epochs", "batch_size", "lr", "seed"):
+        assert meta["settings"][key] == recipe[key], key
+    shipped, _ = load_checkpoint(DEFAULT_WEIGHTS)
+    base, _ = load_checkpoint(repo / recipe["base"])
+    assert shipped.config == replace(base.config, box_refinement=True)
+    state = shipped.state_dict()
+    assert all(torch.equal(state[k], v) for k, v in base.state_dict().items())

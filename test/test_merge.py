@@ -128,20 +128,3 @@ def test_merge_takes_each_distinct_point_once():
     assert merged.is_measured.sum() == 30                        # each measured point once: repeats are the network's
     only_measured = merge_measured(measured, measured, 70)        # nothing new from the network: mirror repeated
     assert only_measured.is_measured.sum() == 30 and len(only_measured.points) == 70
-
-
-def test_mirror_about_a_refined_box_plane():
-    """With the box the network completed in (a BoxFrame vector), the mirror plane is that box's: through its
-    centre along its heading; mirroring twice gives the points back; the zero frame is the given box's plane."""
-    rng = np.random.default_rng(0)
-    points = rng.uniform(-0.5, 0.5, (50, 3)).astype(np.float32)
-    shifted = np.array([0.0, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0])
-    assert np.allclose(mirrored(points, shifted)[:, 1], 0.1 - points[:, 1], atol=1e-6)
-    assert np.array_equal(mirrored(points, np.zeros(7)), mirrored(points))
-    turned = np.array([0.02, -0.03, 0.01, np.radians(5.0), 0.0, 0.0, 0.0])
-    twice = mirrored(mirrored(points, turned), turned)
-    assert np.allclose(twice, points, atol=1e-6)
-    axis = np.array([np.cos(turned[3]), np.sin(turned[3])])   # a point on the plane stays where it is
-    on_plane = np.array([[turned[0] + 0.3 * axis[0], turned[1] + 0.3 * axis[1], 0.2]], np.float32)
-    assert np.allclose(mirrored(on_plane, turned), on_plane, atol=1e-6)
-    assert np.allclose(mirrored(points, turned)[:, 2], points[:, 2])

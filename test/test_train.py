@@ -320,7 +320,7 @@ def test_the_repository_keeps_its_recipes():
 
 
 @pytest.mark.parametrize(("weights", "recipe_name"), [
-    ("gd_completion/weights/ggd_vehicles.pt", "ggd_v2_stage5b"),              # shipped
+    ("docs/evaluation/ablation/ggd_v2_stage5b.pt", "ggd_v2_stage5b"),         # the shipped network's completion part
     ("docs/evaluation/ablation/ggd_v2_stage6.pt", "ggd_v2_stage6"),           # measured, kept, not shipped
 ])
 def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name):

@@ -97,31 +97,22 @@ def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
     (length, width, height), needed by a box-conditioned model. In eval mode P_g of the forward pass
     equals `generate` (FPS is deterministic), so one pass serves both baselines.
     """
-    return _forward_batches(model, partials, sizes, max_batch)[:2]
-
-
-@torch.inference_mode()
-def _forward_batches(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
-                     sizes: np.ndarray | Sequence[Sequence[float]] | None, max_batch: int
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`network_outputs` and the box frames (B, 7) the network completed in (`GGDOutput.frame`)."""
     model = model.eval()
     if isinstance(partials, np.ndarray) and partials.ndim == 3 and partials.shape[1] == model.config.num_input:
         batch = partials.astype(np.float32, copy=False)
     else:
         batch = _resampled(list(partials), model.config.num_input)[0]
     shapes = _shapes(sizes, len(batch))
-    generated, completion, frames = [], [], []
+    generated, completion = [], []
     for start in range(0, len(batch), max_batch):
         out = model(torch.from_numpy(np.ascontiguousarray(batch[start:start + max_batch])),
                     shapes[start:start + max_batch] if shapes is not None else None)
         generated.append(out.generated.float().numpy())
         completion.append(out.completion.float().numpy())
-        frames.append(out.frame.double().numpy())
     if not generated:
         empty = np.zeros((0, model.config.num_output, 3), np.float32)
-        return empty, empty.copy(), np.zeros((0, 7))
-    return np.concatenate(generated), np.concatenate(completion), np.concatenate(frames)
+        return empty, empty.copy()
+    return np.concatenate(generated), np.concatenate(completion)
 
 
 @dataclass(frozen=True)
@@ -140,7 +131,6 @@ def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
     points each partial fed the network (`merge.merge_with_fed`, the rows of its one resampling)."""
     partials = [np.asarray(p, np.float32).reshape(-1, 3) for p in partials]
     batch, rows = _resampled(partials, model.config.num_input)
-    generated, completion, frames = _forward_batches(model, batch, sizes, max_batch)
-    merged = [merge_with_fed(c, p, model.config.num_input, r, f).points
-              for p, c, r, f in zip(partials, completion, rows, frames)]
+    generated, completion = network_outputs(model, batch, sizes, max_batch=max_batch)
+    merged = [merge_with_fed(c, p, model.config.num_input, r).points for p, c, r in zip(partials, completion, rows)]
     return NetworkOutputs(generated, completion, np.stack(merged) if merged else completion.copy())

@@ -30,8 +30,6 @@ class GGDOutput(NamedTuple):
     generated: Tensor         # P_g (B, N_o, 3) = concat(P_c, P_s)
     neighbours: Tensor        # kNN graph of P_g (B, N_o, k), used by the Laplacian loss
     control_index: Tensor     # (B, N_c) indices of P_c in the input
-    frame: Tensor             # (B, 7) the box it completed in, in the given box's frame (box_refiner.BoxFrame
-                              # vector; zeros = the given box, always without a box refiner)
 
 
 class LinearBN(nn.Module):
@@ -363,9 +361,10 @@ class GGDNet(nn.Module):
             out = self._forward(partial, order, shape)
         if frame is None:
             return out
-        back = {name: from_frame(getattr(out, name), frame)
-                for name in ("coarse", "control", "control_deformed", "completion", "generated")}
-        return out._replace(**back, frame=frame.to_vector())
+        nc = self.config.num_control   # P_c, P_s and P_c' are parts of P_g and P_o: two transforms, not five
+        generated, completion = from_frame(out.generated, frame), from_frame(out.completion, frame)
+        return out._replace(generated=generated, completion=completion, control=generated[:, :nc],
+                            coarse=generated[:, nc:], control_deformed=completion[:, :nc])
 
     def _forward(self, partial: Tensor, order: Tensor, shape: Tensor | None) -> GGDOutput:
         code, coarse, control, control_index, order = self._generate(partial, order, shape)
@@ -378,8 +377,7 @@ class GGDNet(nn.Module):
         x = torch.cat([self.local(p_g, partial, order), p_g, label], -1)
         p_o = p_g + self.deform(x, code, knn)
         return GGDOutput(coarse=coarse, control=control, control_deformed=p_o[:, :nc], completion=p_o,
-                         generated=p_g, neighbours=knn, control_index=control_index,
-                         frame=torch.zeros(b, 7, dtype=p_o.dtype, device=p_o.device))
+                         generated=p_g, neighbours=knn, control_index=control_index)
 
     def num_parameters(self) -> int:
         """Number of trainable parameters."""
