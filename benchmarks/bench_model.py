@@ -28,6 +28,7 @@ import torch
 
 from gd_completion.merge import merge_with_fed
 from gd_completion.model import GGDConfig, GGDNet, ggd_loss
+from gd_completion.model.box_refiner import from_frame
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import box_shape
 from gd_completion.model.ops import farthest_point_sample, gather_points, knn_graph, torch_kernels
@@ -153,6 +154,11 @@ def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) ->
             "G-ResNet": lambda: model.deform(feat, code, knn),
             "merge": lambda: merge_with_fed(completion, x[0].numpy(), n),
         }
+        if model.refiner is not None:   # its PointNet, the input into its frame and P_g, P_o back (GGDNet.forward)
+            def refine() -> None:
+                frame = model._refine(x, shape)[2]
+                from_frame(pg, frame), from_frame(pg, frame)
+            parts["box refiner"] = refine
         times = _interleaved(parts, repeats, 1)
     for name, ts in times.items():
         print(f"  stage {name:12s} {min(ts):7.2f} ms (min) {statistics.median(ts):7.2f} (median)  [n={n}]")
