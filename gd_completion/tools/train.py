@@ -85,18 +85,24 @@ _PATH_KEYS = ("meshes", "init_from")
 SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
 
 
+def load_recipe(path: Path, keys: tuple[str, ...]) -> dict[str, Any]:
+    """A recipe file's JSON object, whose keys are among `keys`, "name" and "notes"; DataFormatError otherwise."""
+    try:
+        recipe = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DataFormatError(f"{path}: cannot read the recipe ({exc})") from exc
+    if not isinstance(recipe, dict):
+        raise DataFormatError(f"{path}: a recipe is a JSON object")
+    unknown = sorted(set(recipe) - set(keys) - {"name", "notes"})
+    if unknown:
+        raise DataFormatError(f"{path}: unknown recipe keys {unknown}; expected some of {list(keys)}")
+    return recipe
+
+
 def apply_recipe(args: argparse.Namespace, recipe_path: Path) -> None:
     """Set `args` from a recipe file; a shaping option also given on the command line is an error (one source
     of truth per run). Relative paths in the recipe are relative to the current folder, like the CLI's."""
-    try:
-        recipe = json.loads(recipe_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DataFormatError(f"{recipe_path}: cannot read the recipe ({exc})") from exc
-    if not isinstance(recipe, dict):
-        raise DataFormatError(f"{recipe_path}: a recipe is a JSON object")
-    unknown = sorted(set(recipe) - set(RECIPE_KEYS) - {"name", "notes"})
-    if unknown:
-        raise DataFormatError(f"{recipe_path}: unknown recipe keys {unknown}; expected some of {list(RECIPE_KEYS)}")
+    recipe = load_recipe(recipe_path, RECIPE_KEYS)
     clashes = [k for k in recipe if k in RECIPE_KEYS and getattr(args, k) != RECIPE_DEFAULTS.get(k)]
     if clashes:
         raise DataFormatError(f"{recipe_path}: also given on the command line: {clashes}")

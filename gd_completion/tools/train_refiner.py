@@ -32,16 +32,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def read_recipe(path: Path) -> dict[str, Any]:
     """The recipe's keys, checked; DataFormatError naming the file otherwise."""
-    try:
-        recipe = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DataFormatError(f"{path}: cannot read the recipe ({exc})") from exc
-    if not isinstance(recipe, dict):
-        raise DataFormatError(f"{path}: a recipe is a JSON object")
-    unknown = sorted(set(recipe) - set(RECIPE_KEYS) - {"name", "notes"})
+    from gd_completion.tools.train import load_recipe
+
+    recipe = load_recipe(path, RECIPE_KEYS)
     missing = [k for k in ("base", "data") if k not in recipe]
-    if unknown or missing:
-        raise DataFormatError(f"{path}: unknown keys {unknown}, missing keys {missing} (keys: {list(RECIPE_KEYS)})")
+    if missing:
+        raise DataFormatError(f"{path}: missing recipe keys {missing}")
     if not isinstance(recipe["data"], list) or not recipe["data"]:
         raise DataFormatError(f"{path}: data must be a non-empty list of training recipes")
     return recipe
