@@ -247,8 +247,10 @@ class LatestSlot(Generic[T]):
         if not 0.0 < due <= fresh_age:
             return item
         with self._cond:   # the next item may be a little late: a quarter period of slack
-            if not self._cond.wait_for(lambda: self._full or self._closed, due + period / 4) or not self._full:
+            if not self._cond.wait_for(lambda: self._full or self._closed, due + period / 4):
                 return item
+            if not self._full:   # closed while holding
+                return None
             newer, self._item, self._full = self._item, None, False
             self.stale += 1
             return newer

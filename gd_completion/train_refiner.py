@@ -39,6 +39,9 @@ class RefinerSettings:
     lr: float = 1e-3
     seed: int = 0
     device: str = "cpu"
+    # epochs whose batch norms use and update batch statistics; later epochs train with the running statistics
+    # frozen (None: every epoch). The shipped run froze them after epoch 1 (docs/MODEL.md, "Box refinement").
+    norm_train_epochs: int | None = None
 
     def lr_at(self, step: int, total: int) -> float:
         """Learning rate of the 0-based optimisation `step` of `total`."""
@@ -80,8 +83,7 @@ def with_refiner(model: GGDNet) -> GGDNet:
     if model.refiner is not None:
         return model
     refined = GGDNet(replace(model.config, box_refinement=True))
-    missing, unexpected = refined.load_state_dict(model.state_dict(), strict=False)
-    assert not unexpected and all(k.startswith("refiner.") for k in missing), (missing, unexpected)
+    refined.load_state_dict({**refined.state_dict(), **model.state_dict()})   # strict: the same names but refiner.*
     return refined
 
 
@@ -106,11 +108,11 @@ def frame_loss(model: GGDNet, partial: torch.Tensor, shape: torch.Tensor, target
 @torch.inference_mode()
 def validate(model: GGDNet, data: FrameData, device: torch.device | str, batch: int = 256) -> dict[str, float]:
     """Loss and the RMS error of each frame value in FRAME_UNITS, the refiner's and the given box's."""
-    was_training = model.training
-    model.eval()
+    was_training = model.refiner.training
+    model.refiner.eval()
     preds = [model.refiner.vector(data.partial[s:s + batch].to(device), data.shape[s:s + batch].to(device)).cpu()
              for s in range(0, len(data), batch)]
-    model.train(was_training)
+    model.refiner.train(was_training)
     pred, units = torch.cat(preds), model.refiner.units.cpu()
     names = ("x", "y", "z", "yaw", "log_length", "log_width", "log_height")
     rms = ((pred - data.target) ** 2).mean(0).sqrt() / units
@@ -133,35 +135,33 @@ def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, 
     torch.manual_seed(settings.seed)
     base_data = read_checkpoint(base)
     preprocessing = preprocessing or Preprocessing.from_dict(base_data.get("preprocessing"))
-    model = with_refiner(model_from_checkpoint(base_data, base))
-    if not model.config.box_conditioning:
+    if not base_data["config"].get("box_conditioning"):
         raise CheckpointError(f"checkpoint {base}: the box refiner needs a box-conditioned model")
+    model = with_refiner(model_from_checkpoint(base_data, base)).to(device)
     steps_per_epoch = len(train_data) // settings.batch_size
     if steps_per_epoch < 1:
         raise DataFormatError(f"box refiner data: {len(train_data)} samples, fewer than one batch")
-    for p in model.parameters():
-        p.requires_grad_(False)
-    for p in model.refiner.parameters():
-        p.requires_grad_(True)
+    model.requires_grad_(False)
+    model.refiner.requires_grad_(True)
     optimizer = torch.optim.Adam(model.refiner.parameters(), lr=settings.lr)
     total_steps = settings.epochs * steps_per_epoch
     start_epoch, history, best = 0, [], math.inf
     if resume and last_path.is_file():
         data = read_checkpoint(last_path)
-        if not {"optimizer", "epoch"} <= set(data):
-            raise CheckpointError(f"checkpoint {last_path}: not a resumable refiner checkpoint")
+        if not {"optimizer", "epoch", "best_loss"} <= set(data) or data["config"] != model.config.to_dict():
+            raise CheckpointError(f"checkpoint {last_path}: not a resumable refiner checkpoint of {base}")
         model.load_state_dict(data["state_dict"])
         optimizer.load_state_dict(data["optimizer"])
         start_epoch, history, best = int(data["epoch"]), list(data.get("history", [])), float(data["best_loss"])
         log.info("resuming from %s at epoch %d", last_path, start_epoch)
-    model.to(device).eval()          # the completion network's batch norms stay as they are
-    model.refiner.train()
+    model.eval()          # the completion network's batch norms stay as they are
     log.info("training the box refiner (%d parameters) on %d samples, validating on %d, device %s",
              sum(p.numel() for p in model.refiner.parameters()), len(train_data), len(val_data), device)
     for epoch in range(start_epoch, settings.epochs):
         g = torch.Generator().manual_seed(settings.seed * 100003 + epoch)   # resumable shuffling and mirroring
         perm = torch.randperm(len(train_data), generator=g)
         flips = torch.rand(len(train_data), generator=g) < 0.5
+        model.refiner.train(settings.norm_train_epochs is None or epoch < settings.norm_train_epochs)
         total, t0 = 0.0, time.monotonic()
         for step in range(steps_per_epoch):
             idx = perm[step * settings.batch_size:(step + 1) * settings.batch_size]

@@ -58,6 +58,10 @@ def test_frame_targets_put_the_true_vehicle_at_the_origin():
         flipped_gt, flipped_target = mirrored_batch(gt, torch.from_numpy(target), torch.tensor([True]))
         mirrored = to_frame(flipped_gt, BoxFrame.from_vector(flipped_target))[0].numpy()
         mirrored_after.append(np.abs(_bbox_centre(mirrored)).max())
+        assert np.ptp(mirrored[:, 0]) == pytest.approx(1.0, abs=0.03)   # a wrong yaw sign tilts it: longer in x
+        assert np.ptp(mirrored[:, 1]) == pytest.approx(np.ptp(placed[:, 1]), abs=1e-4)
+        true_shape = refined_shape(box_shape(meta["size"][None]), BoxFrame.from_vector(torch.from_numpy(target)))
+        assert torch.allclose(true_shape, box_shape(meta["true_size"][None]), atol=1e-5)
     assert max(after) < 0.02 and max(mirrored_after) < 0.02 and max(before) > 0.03, (before, after)
 
 
@@ -116,14 +120,51 @@ def test_train_refiner_learns_a_known_offset_and_resumes(tmp_path):
     settings = RefinerSettings(epochs=12, batch_size=32, lr=3e-3)
     first = train_refiner(base, train, val, tmp_path / "run", replace(settings, epochs=6))
     resumed = train_refiner(base, train, val, tmp_path / "run", settings, resume=True)
-    assert len(first.history) == 6 and len(resumed.history) == 12
+    assert len(first.history) == 6 and len(resumed.history) == 12 and resumed.history[:6] == first.history
     last = resumed.history[-1]
     assert last["val_rms_x"] < 0.5 * last["val_given_rms_x"] and last["val_rms_y"] < 0.5 * last["val_given_rms_y"]
     model, _ = load_checkpoint(first.best_path)
     assert model.config.box_refinement and model.refiner is not None
-    before, _ = load_checkpoint(base)
-    after = model.state_dict()
-    assert all(torch.equal(after[k], v) for k, v in before.state_dict().items()), "the completion network is frozen"
+    assert model.refiner.out.weight.abs().sum() > 0   # trained away from the identity
+
+
+def _norm_statistics(path) -> torch.Tensor:
+    model, _ = load_checkpoint(path)
+    return torch.cat([m.running_mean for m in model.refiner.modules() if isinstance(m, torch.nn.BatchNorm1d)])
+
+
+@pytest.mark.parametrize("norm_train_epochs, frozen", [(None, False), (1, True)])
+def test_refiner_batch_norms_train_in_the_epochs_asked(tmp_path, norm_train_epochs, frozen):
+    """Batch norms use batch statistics in every epoch, or only in the first `norm_train_epochs` (then their
+    running statistics stay as they are), also across a resume."""
+    torch.manual_seed(0)
+    base = tmp_path / "base.pt"
+    save_checkpoint(base, GGDNet(TINY))
+    train, val = _offset_data(256, 0), _offset_data(64, 1)
+    settings = RefinerSettings(epochs=2, batch_size=32, lr=3e-3, norm_train_epochs=norm_train_epochs)
+    first = train_refiner(base, train, val, tmp_path / "run", replace(settings, epochs=1))
+    after_one = _norm_statistics(first.last_path)
+    second = train_refiner(base, train, val, tmp_path / "run", settings, resume=True)
+    assert torch.equal(_norm_statistics(second.last_path), after_one) == frozen
+    assert not torch.equal(after_one, torch.zeros_like(after_one))   # epoch 1 always updates them
+
+
+def test_a_base_without_box_conditioning_is_refused(tmp_path):
+    from gd_completion.errors import CheckpointError
+
+    base = tmp_path / "plain.pt"
+    save_checkpoint(base, GGDNet(replace(TINY, box_conditioning=False)))
+    with pytest.raises(CheckpointError, match="box-conditioned"):
+        train_refiner(base, _offset_data(64, 0), _offset_data(32, 1), tmp_path / "run", RefinerSettings(epochs=1))
+
+
+def test_the_refined_frame_is_bounded():
+    torch.manual_seed(0)
+    refined = with_refiner(GGDNet(TINY)).eval()
+    with torch.no_grad():
+        refined.refiner.out.bias.fill_(1000.0)
+        vector = refined.refiner.vector(torch.rand(1, 64, 3), box_shape([[4.5, 1.8, 1.5]]))
+    assert torch.allclose(vector[0], refined.refiner.limits)
 
 
 def test_frame_data_needs_the_box_error():

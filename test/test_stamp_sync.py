@@ -179,13 +179,32 @@ def test_latest_slot_completes_a_stale_item_when_nothing_newer_comes():
     assert slot.take(timeout=1, fresh_age=0.05) == "item3" and slot.stale == 0
 
 
-@pytest.mark.parametrize("taken_at, fresh_age", [(0.33, 0.05),   # 30 ms old: fresh enough
-                                                 (0.36, 0.0),    # holding disabled
-                                                 (0.45, 0.05)])  # older than a period: the next is late, no hold
+@pytest.mark.parametrize("taken_at, fresh_age", [(330.0, 50.0),   # 30 s old: fresh enough
+                                                 (360.0, 0.0),    # holding disabled
+                                                 (450.0, 50.0)])  # older than a period: the next is late
 def test_latest_slot_does_not_hold_without_cause(taken_at, fresh_age):
-    slot, clock = _slot_fed_every(0.1, 4)
+    # puts every 100 s (fake clock): a hold would last tens of seconds and return the item put meanwhile
+    slot, clock = _slot_fed_every(100.0, 4)
     clock.now = taken_at
-    assert slot.take(timeout=1, fresh_age=fresh_age) == "item3"
+    got: list = []
+    taker = threading.Thread(target=lambda: got.append(slot.take(timeout=1, fresh_age=fresh_age)))
+    taker.start()
+    time.sleep(0.2)
+    slot.put("newer")
+    taker.join(30)
+    assert got == ["item3"] and slot.stale == 0
+
+
+def test_latest_slot_close_while_holding_returns_nothing():
+    slot, clock = _slot_fed_every(10.0, 4)
+    clock.now = 36.0   # held for up to 6.5 s
+    got: list = []
+    taker = threading.Thread(target=lambda: got.append(slot.take(timeout=1, fresh_age=5.0)))
+    taker.start()
+    time.sleep(0.2)
+    slot.close()
+    taker.join(10)
+    assert got == [None]
 
 
 def test_latest_slot_does_not_hold_when_the_next_is_due_later_than_fresh_age():

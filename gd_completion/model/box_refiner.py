@@ -16,6 +16,9 @@ from torch import Tensor, nn
 # Typical magnitude of each regressed value (centre x, y, z in box lengths; yaw in rad; log size factors):
 # the network predicts them in these units, so every output starts near 0 (the identity) and weighs alike.
 FRAME_UNITS = (0.04, 0.04, 0.015, 0.08, 0.06, 0.06, 0.06)
+# Bounds of each value (beyond the training data's box errors): an input unlike any training scan cannot move
+# the frame further than this (0.3 lengths, 29 deg, size factors 0.67-1.49).
+FRAME_LIMITS = (0.3, 0.3, 0.15, 0.5, 0.4, 0.4, 0.4)
 
 
 class BoxFrame(NamedTuple):
@@ -91,11 +94,13 @@ class BoxRefiner(nn.Module):
         nn.init.zeros_(self.out.bias)
         self.head = nn.Sequential(*head)
         self.register_buffer("units", torch.tensor(FRAME_UNITS))
+        self.register_buffer("limits", torch.tensor(FRAME_LIMITS), persistent=False)
 
     def vector(self, partial: Tensor, shape: Tensor) -> Tensor:
         """(B, 7) `BoxFrame` vector of `partial` (B, N, 3) in the given box's frame with its `shape` (B, 2)."""
         code = self.points(partial.transpose(1, 2)).amax(2)
-        return self.out(self.head(torch.cat([code, shape], 1))) * self.units
+        vector = self.out(self.head(torch.cat([code, shape], 1))) * self.units
+        return torch.maximum(torch.minimum(vector, self.limits), -self.limits)
 
     def forward(self, partial: Tensor, shape: Tensor) -> BoxFrame:
         return BoxFrame.from_vector(self.vector(partial, shape))

@@ -100,8 +100,8 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "fresh_frame_age": (FRESH_FRAME_AGE_S, "Seconds; when the node is slower than its input, a paired frame that "
                                            "has waited longer than this for the worker is held back for the next "
                                            "frame if that is due within this time too, and replaced by it "
-                                           "(drop_stale); else it is completed as is. Fewer frames answered, lower "
-                                           "latency. 0 = complete the newest pending frame whatever its age.",
+                                           "(drop_stale); else it is completed as is. Lower latency; may answer "
+                                           "fewer frames. 0 = complete the newest pending frame whatever its age.",
                         _float(0.0, 10.0)),
     "include_input_points": (True, "Also publish the measured points of each completed vehicle (generated=0); "
                                    "without them, a merged completion's own measured points still carry "

@@ -11,7 +11,7 @@ from gd_completion.atomic import atomic_path, make_folder
 from gd_completion.errors import DataFormatError
 
 # Keys of a refiner recipe (recipes/box_refiner*.json) besides "name" and "notes".
-RECIPE_KEYS = ("base", "data", "epochs", "batch_size", "lr", "seed")
+RECIPE_KEYS = ("base", "data", "epochs", "batch_size", "lr", "seed", "norm_train_epochs")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -52,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
     output = make_folder(args.output or Path("runs") / recipe.get("name", args.recipe.stem))
     cache = make_folder(args.cache)
     sets = [recipe_datasets(Path(r), cache, args.workers) for r in recipe["data"]]
-    settings = RefinerSettings(**{k: recipe[k] for k in ("epochs", "batch_size", "lr", "seed") if k in recipe},
+    settings = RefinerSettings(**{k: recipe[k] for k in ("epochs", "batch_size", "lr", "seed", "norm_train_epochs")
+                                  if k in recipe},
                                device=args.device)
     with atomic_path(output / "settings.json") as tmp:
         tmp.write_text(json.dumps({"recipe": str(args.recipe), **recipe}, indent=2))
