@@ -24,7 +24,7 @@ from .model.box_refiner import frame_targets
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
-from .train import PROGRESS_STEPS, TrainResult
+from .train import PROGRESS_STEPS, TrainResult, _as_tensor
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,10 @@ class FrameData:
                           frame_targets(data["box_noise"], data["yaw"], data["size"], data["true_size"])))
         if not parts:
             raise DataFormatError("box refiner data: no data sets")
-        return cls(*(torch.from_numpy(np.concatenate(p)) for p in zip(*parts)))
+        partial, shape, target = (np.concatenate(p) for p in zip(*parts))
+        if not (np.isfinite(shape).all() and np.isfinite(target).all()):
+            raise DataFormatError("box refiner data: non-finite or non-positive box sizes or box errors")
+        return cls(_as_tensor(partial, "box refiner data partial"), torch.from_numpy(shape), torch.from_numpy(target))
 
     def __len__(self) -> int:
         return self.partial.shape[0]

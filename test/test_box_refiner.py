@@ -7,21 +7,18 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import test_model
 import torch
 
 from gd_completion.errors import DataFormatError
 from gd_completion.model.box_refiner import FRAME_UNITS, BoxFrame, frame_targets, from_frame, refined_shape, to_frame
 from gd_completion.model.checkpoint import load_checkpoint, save_checkpoint
-from gd_completion.model.config import GGDConfig
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.synth.dataset import SampleOptions, make_sample, sample_rng
 from gd_completion.tools.train_refiner import read_recipe
 from gd_completion.train_refiner import FrameData, RefinerSettings, mirrored_batch, train_refiner, with_refiner
 
-TINY = GGDConfig(num_input=64, num_output=96, num_control=32, encoder_h0=(16, 32), encoder_h1=(32,),
-                 code_hidden=(32,), code_dim=32, tree_arity=(4, 4, 4), tree_node_dim=8, tree_hidden=(32, 16),
-                 radius=0.2, ball_m=4, local_widths=(8, 8), knn_k=4, gcn_width=16, gcn_blocks=1,
-                 box_conditioning=True)
+TINY = replace(test_model.TINY, box_conditioning=True)
 
 
 def _frame(b: int, seed: int = 0) -> BoxFrame:
@@ -170,6 +167,17 @@ def test_the_refined_frame_is_bounded():
 def test_frame_data_needs_the_box_error():
     with pytest.raises(DataFormatError, match="box_noise"):
         FrameData.from_datasets([{"partial": np.zeros((1, 4, 3)), "size": np.ones((1, 3))}])
+
+
+def test_frame_data_refuses_non_finite_values():
+    good = {"partial": np.zeros((2, 4, 3)), "box_noise": np.tile([0, 0, 0, 1, 1, 1, 0.0], (2, 1)),
+            "yaw": np.zeros(2), "size": np.ones((2, 3)), "true_size": np.ones((2, 3))}
+    assert len(FrameData.from_datasets([good])) == 2
+    for key, row in (("partial", (0, 1, 2)), ("box_noise", (1, 6)), ("size", (0, 1))):
+        bad = {k: np.array(v, np.float64) for k, v in good.items()}
+        bad[key][row] = np.nan
+        with pytest.raises(DataFormatError, match="non-finite|NaN"):
+            FrameData.from_datasets([bad])
 
 
 def test_refiner_recipe_is_checked(tmp_path):

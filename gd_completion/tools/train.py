@@ -222,9 +222,9 @@ def dataset_specs(args: argparse.Namespace, config: GGDConfig, options: SampleOp
 def recipe_datasets(recipe: Path, cache: Path, workers: int) -> tuple[dict[str, Any], dict[str, Any]]:
     """The training and validation data sets of training recipe `recipe`, loaded from `cache` when it holds
     them (`cached_dataset`), else generated there."""
-    parser = argparse.ArgumentParser()
-    register(parser.add_subparsers())
-    args = parser.parse_args(["train"])
+    from gd_completion.cli import build_parser
+
+    args = build_parser("train").parse_args(["train"])
     apply_recipe(args, recipe)
     spec, val_spec = dataset_specs(args, load_config(args), sampling_options(args.sampling))
     return cached_dataset(cache, "train", spec, workers), cached_dataset(cache, "val", val_spec, workers)

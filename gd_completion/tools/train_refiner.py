@@ -10,8 +10,10 @@ from typing import Any
 from gd_completion.atomic import atomic_path, make_folder
 from gd_completion.errors import DataFormatError
 
-# Keys of a refiner recipe (recipes/box_refiner*.json) besides "name" and "notes".
-RECIPE_KEYS = ("base", "data", "epochs", "batch_size", "lr", "seed", "norm_train_epochs")
+# Keys of a refiner recipe (recipes/box_refiner*.json) besides "name" and "notes": the base checkpoint, the
+# training recipes whose data sets it uses, and fields of train_refiner.RefinerSettings.
+SETTING_KEYS = ("epochs", "batch_size", "lr", "seed", "norm_train_epochs")
+RECIPE_KEYS = ("base", "data", *SETTING_KEYS)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -52,9 +54,7 @@ def run(args: argparse.Namespace) -> int:
     output = make_folder(args.output or Path("runs") / recipe.get("name", args.recipe.stem))
     cache = make_folder(args.cache)
     sets = [recipe_datasets(Path(r), cache, args.workers) for r in recipe["data"]]
-    settings = RefinerSettings(**{k: recipe[k] for k in ("epochs", "batch_size", "lr", "seed", "norm_train_epochs")
-                                  if k in recipe},
-                               device=args.device)
+    settings = RefinerSettings(**{k: recipe[k] for k in SETTING_KEYS if k in recipe}, device=args.device)
     with atomic_path(output / "settings.json") as tmp:
         tmp.write_text(json.dumps({"recipe": str(args.recipe), **recipe}, indent=2))
     result = train_refiner(Path(recipe["base"]), FrameData.from_datasets([t for t, _ in sets]),
