@@ -42,6 +42,12 @@ class RefinerSettings:
     # epochs whose batch norms use and update batch statistics; later epochs train with the running statistics
     # frozen (None: every epoch). The shipped run froze them after epoch 1 (docs/MODEL.md, "Box refinement").
     norm_train_epochs: int | None = None
+    # size of the refiner added to a base without one (GGDConfig.refiner_widths, refiner_hidden)
+    widths: tuple[int, ...] = (64, 128, 256)
+    hidden: tuple[int, ...] = (256, 128)
+
+    def __post_init__(self) -> None:
+        self.widths, self.hidden = tuple(int(w) for w in self.widths), tuple(int(w) for w in self.hidden)
 
     def lr_at(self, step: int, total: int) -> float:
         """Learning rate of the 0-based optimisation `step` of `total`."""
@@ -81,11 +87,13 @@ class FrameData:
         return self.partial.shape[0]
 
 
-def with_refiner(model: GGDNet) -> GGDNet:
-    """`model` with a fresh (identity) box refiner added, or itself when it has one."""
+def with_refiner(model: GGDNet, widths: Sequence[int] = (64, 128, 256), hidden: Sequence[int] = (256, 128)
+                 ) -> GGDNet:
+    """`model` with a fresh (identity) box refiner of these sizes added, or itself when it has one."""
     if model.refiner is not None:
         return model
-    refined = GGDNet(replace(model.config, box_refinement=True))
+    refined = GGDNet(replace(model.config, box_refinement=True, refiner_widths=tuple(widths),
+                             refiner_hidden=tuple(hidden)))
     refined.load_state_dict({**refined.state_dict(), **model.state_dict()})   # strict: the same names but refiner.*
     return refined
 
@@ -140,7 +148,7 @@ def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, 
     preprocessing = preprocessing or Preprocessing.from_dict(base_data.get("preprocessing"))
     if not base_data["config"].get("box_conditioning"):
         raise CheckpointError(f"checkpoint {base}: the box refiner needs a box-conditioned model")
-    model = with_refiner(model_from_checkpoint(base_data, base)).to(device)
+    model = with_refiner(model_from_checkpoint(base_data, base), settings.widths, settings.hidden).to(device)
     steps_per_epoch = len(train_data) // settings.batch_size
     if steps_per_epoch < 1:
         raise DataFormatError(f"box refiner data: {len(train_data)} samples, fewer than one batch")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,10 +13,15 @@ import torch
 
 from gd_completion.errors import DataFormatError
 from gd_completion.model.box_refiner import FRAME_UNITS, BoxFrame, frame_targets, from_frame, refined_shape, to_frame
-from gd_completion.model.checkpoint import load_checkpoint, save_checkpoint
+from gd_completion.model.checkpoint import (
+    DEFAULT_WEIGHTS,
+    load_checkpoint,
+    read_checkpoint_metadata,
+    save_checkpoint,
+)
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.synth.dataset import SampleOptions, make_sample, sample_rng
-from gd_completion.tools.train_refiner import read_recipe
+from gd_completion.tools.train_refiner import SETTING_KEYS, read_recipe
 from gd_completion.train_refiner import FrameData, RefinerSettings, mirrored_batch, train_refiner, with_refiner
 
 TINY = replace(test_model.TINY, box_conditioning=True)
@@ -98,6 +104,12 @@ def test_box_refinement_needs_box_conditioning():
         replace(TINY, box_conditioning=False, box_refinement=True)
 
 
+@pytest.mark.parametrize("widths, hidden", [((), (16,)), ((8, 0), (16,)), ((8,), (-4,))])
+def test_refiner_sizes_are_checked(widths, hidden):
+    with pytest.raises(ValueError, match="refiner"):
+        replace(TINY, box_refinement=True, refiner_widths=widths, refiner_hidden=hidden)
+
+
 def _offset_data(n: int, seed: int) -> FrameData:
     """Box-shaped clouds moved by a known centre offset (x, y) in the box frame, exact otherwise."""
     g = torch.Generator().manual_seed(seed)
@@ -123,6 +135,17 @@ def test_train_refiner_learns_a_known_offset_and_resumes(tmp_path):
     model, _ = load_checkpoint(first.best_path)
     assert model.config.box_refinement and model.refiner is not None
     assert model.refiner.out.weight.abs().sum() > 0   # trained away from the identity
+
+
+def test_the_refiner_size_is_a_setting_kept_in_the_checkpoint(tmp_path):
+    base = tmp_path / "base.pt"
+    save_checkpoint(base, GGDNet(TINY))
+    settings = RefinerSettings(epochs=1, batch_size=32, widths=[8, 16], hidden=[12])
+    result = train_refiner(base, _offset_data(64, 0), _offset_data(32, 1), tmp_path / "run", settings)
+    model, _ = load_checkpoint(result.best_path)
+    assert (model.config.refiner_widths, model.config.refiner_hidden) == ((8, 16), (12,))
+    assert [m.out_channels for m in model.refiner.points if isinstance(m, torch.nn.Conv1d)] == [8, 16]
+    assert [m.out_features for m in model.refiner.head if isinstance(m, torch.nn.Linear)] == [12]
 
 
 def _norm_statistics(path) -> torch.Tensor:
@@ -187,28 +210,35 @@ def test_refiner_recipe_is_checked(tmp_path):
         read_recipe(bad)
 
 
-def test_the_repository_refiner_recipe_names_what_exists():
-    from pathlib import Path
-    repo = Path(__file__).resolve().parents[1]
-    recipe = read_recipe(repo / "recipes" / "box_refiner.json")
-    assert (repo / recipe["base"]).is_file()
-    assert all((repo / r).is_file() for r in recipe["data"])
+REPO = Path(__file__).resolve().parents[1]
+# each refiner checkpoint in the repository and the recipe whose run it is
+REFINER_RUNS = [(DEFAULT_WEIGHTS, "box_refiner_small.json"),
+                (REPO / "docs/evaluation/ablation/ggd_v21_refiner_large.pt", "box_refiner.json")]
 
 
-def test_the_shipped_weights_are_the_refiner_recipe_on_its_frozen_base():
-    """The shipped checkpoint is recipes/box_refiner.json's run: its settings, and its base's weights unchanged
-    (the refiner is the only part it trained)."""
-    from pathlib import Path
+@pytest.mark.parametrize("_, recipe_name", REFINER_RUNS)
+def test_the_repository_refiner_recipes_name_what_exists(_, recipe_name):
+    recipe = read_recipe(REPO / "recipes" / recipe_name)
+    assert (REPO / recipe["base"]).is_file()
+    assert all((REPO / r).is_file() for r in recipe["data"])
 
-    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, read_checkpoint_metadata
-    repo = Path(__file__).resolve().parents[1]
-    recipe = read_recipe(repo / "recipes" / "box_refiner.json")
-    meta = read_checkpoint_metadata(DEFAULT_WEIGHTS)
-    assert meta["epoch"] == recipe["epochs"] == len(meta["history"]) and meta["base"] == recipe["base"]
-    for key in ("epochs", "batch_size", "lr", "seed"):
-        assert meta["settings"][key] == recipe[key], key
-    shipped, _ = load_checkpoint(DEFAULT_WEIGHTS)
-    base, _ = load_checkpoint(repo / recipe["base"])
-    assert shipped.config == replace(base.config, box_refinement=True)
-    state = shipped.state_dict()
+
+@pytest.mark.parametrize("weights, recipe_name", REFINER_RUNS)
+def test_refiner_weights_are_their_recipe_on_its_frozen_base(weights, recipe_name):
+    """The shipped checkpoint (and the kept larger refiner) is its recipe's run: its settings and sizes, and its
+    base's weights unchanged (the refiner is the only part it trained)."""
+    recipe = read_recipe(REPO / "recipes" / recipe_name)
+    meta = read_checkpoint_metadata(weights)
+    assert meta["base"] == recipe["base"] and meta["epoch"] == len(meta["history"]) == recipe["epochs"]
+    settings = RefinerSettings(**{k: recipe[k] for k in SETTING_KEYS if k in recipe})
+    saved = RefinerSettings(**{k: v for k, v in meta["settings"].items() if k in SETTING_KEYS})
+    # the larger refiner's run predates the settings norm_train_epochs, widths and hidden (its config has its sizes)
+    for key in SETTING_KEYS:
+        if key in meta["settings"]:
+            assert getattr(saved, key) == getattr(settings, key), key
+    model, _ = load_checkpoint(weights)
+    base, _ = load_checkpoint(REPO / recipe["base"])
+    assert model.config == replace(base.config, box_refinement=True, refiner_widths=settings.widths,
+                                   refiner_hidden=settings.hidden)
+    state = model.state_dict()
     assert all(torch.equal(state[k], v) for k, v in base.state_dict().items())

@@ -107,7 +107,7 @@ class FusionResult:
 
     coverage: list[CoverageRow]
     consistency: list[ConsistencyRow]
-    max_frames: int
+    max_frames: int | None   # None: every frame of each vehicle
     consistency_frames: int
     max_vehicles: int | None
     n_stationary: int
@@ -163,23 +163,24 @@ def load_frames(sequence: PandaSetSequence, uuids: set[str], prep: Preprocessing
     return out
 
 
-def _positions(track: FusedTrack, max_frames: int, consistency_frames: int
+def _positions(track: FusedTrack, max_frames: int | None, consistency_frames: int
                ) -> tuple[list[tuple[int, int]], list[int]]:
     """((k, position) of the coverage rows, consistency positions) of a track, within the caps."""
-    n = min(len(track.frames), max_frames)
+    n = len(track.frames) if max_frames is None else min(len(track.frames), max_frames)
     cover = [(k, k - 1 if k else n - 1) for k in FUSED_FRAMES if k <= n] if track.stationary else []
     steady = [p for p in range(min(n, consistency_frames)) if track.usable(p)]
     return cover, steady
 
 
-def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, consistency_frames: int = 10,
+def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None = None, consistency_frames: int = 10,
                     max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS, max_batch: int = 32,
                     preprocessing: Preprocessing | None = None, frames: Sequence[int] | None = None,
                     fusion_factory: Callable[[], Fusion] | None = None) -> FusionResult:
     """Feed PandaSet's vehicles frame by frame to TrackFusion and complete the fused partials.
 
     Coverage (stationary vehicles seen in >= 2 frames, reference = all frames' points): the raw fused points,
-    their completion and the single-frame completion after k of the vehicle's first `max_frames` frames.
+    their completion and the single-frame completion after k of the vehicle's first `max_frames` frames (None:
+    all of them).
     Consistency (stationary and moving): Chamfer between completions in consecutive frames among the first
     `consistency_frames` frames of each vehicle, frames with >= MIN_INPUT_POINTS points only.
     `max_vehicles`: the first N stationary and first N moving vehicles with >= MIN_INPUT_POINTS points in
@@ -188,7 +189,7 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
     if fusion_factory is None:
         from gd_completion.fusion import TrackFusion
         fusion_factory = TrackFusion
-    max_frames = max(1, max_frames)
+    max_frames = None if max_frames is None else max(1, max_frames)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     sequence = PandaSetSequence(root)
@@ -213,7 +214,7 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int = 20, co
     dropped = 0
     for index, vehicles in loaded:
         fed = [v for v in vehicles if v.box.instance_id in chosen
-               and len(chosen[v.box.instance_id].fused) < max_frames]
+               and (max_frames is None or len(chosen[v.box.instance_id].fused) < max_frames)]
         if not fed:
             continue
         returned = {v.box.instance_id: v for v in fusion.update(sequence.stamp_ns(index), fed)}

@@ -192,13 +192,16 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
 
 def fusion_section(result: FusionResult) -> str:
     """Coverage error x1e3 after k fused frames and frame-to-frame consistency (Chamfer x1e4), with the targets."""
-    caps = (f"the first {result.max_frames} frames of each vehicle fused"
+    caps = ("every frame of each vehicle fused" if result.max_frames is None
+            else f"the first {result.max_frames} frames of each vehicle fused")
+    caps = (caps
             + (f", the first {result.max_vehicles} stationary and {result.max_vehicles} moving vehicles"
                if result.max_vehicles is not None else "")
             + f" ({result.n_stationary} stationary, {result.n_moving} moving vehicles with >= 50 points in a frame)")
     parts = [f"## PandaSet 002: track fusion\n\nTrackFusion fed every frame in time order (Pandar64 points; {caps}). "
              "Normalised frame of the current box."]
-    rows = [[str(r.k) if r.k else f"all (<= {result.max_frames})", r.n_vehicles, r.raw_fused, r.fused_completion,
+    every = "all" if result.max_frames is None else f"all (<= {result.max_frames})"
+    rows = [[str(r.k) if r.k else every, r.n_vehicles, r.raw_fused, r.fused_completion,
              r.n_single, r.fused_completion_single, r.single_completion, r.ratio] for r in result.coverage]
     ratio = result.coverage_ratio(RATIO_FRAMES)
     parts.append("### Coverage error x1e3 after k fused frames (stationary vehicles)\n\n"

@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 _TUPLE_FIELDS = ("encoder_h0", "encoder_h1", "encoder_fractions", "code_hidden", "tree_arity",
-                 "tree_hidden", "local_widths", "ball_scales")
+                 "tree_hidden", "local_widths", "ball_scales", "refiner_widths", "refiner_hidden")
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,8 @@ class GGDConfig:
     # a BoxRefiner first estimates the true box in the given box's frame; the network completes in that frame
     # and maps its points back (needs box_conditioning; docs/MODEL.md, "Box refinement")
     box_refinement: bool = False
+    refiner_widths: tuple[int, ...] = (64, 128, 256)  # its shared point MLP (Conv1d-BN-ReLU)
+    refiner_hidden: tuple[int, ...] = (256, 128)      # its MLP from the pooled code and the box shape
 
     def __post_init__(self) -> None:
         for name in _TUPLE_FIELDS:
@@ -68,6 +70,8 @@ class GGDConfig:
             problems.append("radius, ball_m, knn_k, gcn_width must be positive, gcn_blocks >= 0")
         if self.knn_k >= self.num_output:
             problems.append("knn_k must be < num_output")
+        if not self.refiner_widths or min(self.refiner_widths + self.refiner_hidden, default=1) < 1:
+            problems.append("refiner_widths needs at least one layer and every refiner width must be positive")
         if self.box_refinement and not self.box_conditioning:
             problems.append("box_refinement needs box_conditioning (the refiner reads the box shape)")
         if problems:

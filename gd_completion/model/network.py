@@ -274,7 +274,8 @@ class GGDNet(nn.Module):
         self.decoder = TreeDecoder(self.config)
         self.local = LocalFeatures(self.config)
         self.deform = GResNet(self.config, self.local.out_dim)
-        self.refiner = BoxRefiner() if self.config.box_refinement else None
+        self.refiner = (BoxRefiner(self.config.refiner_widths, self.config.refiner_hidden)
+                        if self.config.box_refinement else None)
 
     def _check(self, partial: Tensor, shape: Tensor | None) -> None:
         if partial.dim() != 3 or partial.shape[-1] != 3:

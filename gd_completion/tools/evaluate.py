@@ -171,8 +171,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--box-noise-seed", type=int, default=2024, help="seed of the box noise (default 2024)")
     parser.add_argument("--max-vehicles", type=int, default=None, help="first N stationary vehicles only")
     parser.add_argument("--no-fusion", action="store_true", help="skip the PandaSet track-fusion part")
-    parser.add_argument("--fusion-max-frames", type=int, default=20,
-                        help="first N frames of each vehicle fed to the track fusion (default 20)")
+    parser.add_argument("--fusion-max-frames", type=int, default=None,
+                        help="first N frames of each vehicle fed to the track fusion (default all)")
     parser.add_argument("--fusion-consistency-frames", type=int, default=10,
                         help="first N frames of each vehicle in the consistency metric (default 10)")
     parser.add_argument("--no-fusion-align", action="store_true",

@@ -12,7 +12,7 @@ from gd_completion.errors import DataFormatError
 
 # Keys of a refiner recipe (recipes/box_refiner*.json) besides "name" and "notes": the base checkpoint, the
 # training recipes whose data sets it uses, and fields of train_refiner.RefinerSettings.
-SETTING_KEYS = ("epochs", "batch_size", "lr", "seed", "norm_train_epochs")
+SETTING_KEYS = ("epochs", "batch_size", "lr", "seed", "norm_train_epochs", "widths", "hidden")
 RECIPE_KEYS = ("base", "data", *SETTING_KEYS)
 
 
@@ -22,7 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--recipe", type=Path, required=True,
                         help="JSON recipe: base (a box-conditioned checkpoint), data (training recipes whose data "
                         "sets, made with box noise, are used: training and validation sets), epochs, batch_size, "
-                        "lr, seed")
+                        "lr, seed, norm_train_epochs, widths and hidden (the refiner's layer widths)")
     parser.add_argument("--output", type=Path, default=None, help="run folder (default runs/<recipe name>)")
     parser.add_argument("--cache", type=Path, default=Path("runs/cache"),
                         help="folder of the data sets (`gd-completion train --cache`; missing ones are generated)")
