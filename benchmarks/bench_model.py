@@ -164,6 +164,25 @@ def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) ->
         print(f"  stage {name:12s} {min(ts):7.2f} ms (min) {statistics.median(ts):7.2f} (median)  [n={n}]")
 
 
+def compare_models(models: dict[str, GGDNet], frame: torch.Tensor, sizes: np.ndarray, cores: int,
+                   repeats: int) -> None:
+    """Fast path of several checkpoints (same input size) interleaved: batch 1 on 1 thread, 16-vehicle frame."""
+    torch.set_num_threads(1)
+    shapes = box_shape(sizes)
+    one = _interleaved({n: _forward(m, frame[:1], shapes[:1], "fast") for n, m in models.items()}, repeats, 1)
+    completers = {n: VehicleCompleter(m, threads=cores) for n, m in models.items()}
+    partials = list(frame.numpy())
+    many = _interleaved({n: _frame(c, partials, sizes, "fast") for n, c in completers.items()},
+                        max(3, repeats // 2), len(partials))
+    for c in completers.values():
+        c.close()
+    for name, times in (("batch 1, 1 thread", one), (f"16-vehicle frame, {cores} vehicle threads", many)):
+        cells = "  ".join(f"{n} {min(t):6.2f} / {statistics.median(t):6.2f}" for n, t in times.items())
+        first, *rest = times.values()
+        ratios = ", ".join(f"{statistics.median(t) / statistics.median(first):.3f}" for t in rest)
+        print(f"{name:34s} fast path, {cells}  median ratio to model: {ratios}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=12)
@@ -171,6 +190,9 @@ def main() -> None:
     ap.add_argument("--train", action="store_true", help="also time a training step at batch 16 (both paths)")
     ap.add_argument("--profile", action="store_true", help="torch.profiler table of the fast path at batch 1")
     ap.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
+    ap.add_argument("--compare", default=None,
+                    help="only time the fast path of --model against this checkpoint, interleaved (batch 1 on "
+                    "1 thread and the 16-vehicle frame)")
     ap.add_argument("--device", default="cpu", help="also time the torch path on this CUDA device (e.g. cuda)")
     ap.add_argument("--untrained", action="store_true",
                     help="randomly initialised weights (a collapsed P_s: the worst case for the x-window searches)")
@@ -190,6 +212,9 @@ def main() -> None:
     frame, sizes = _vehicles(16, cfg.num_input)
     shapes = box_shape(sizes)
     one, one_shape = frame[:1], shapes[:1]
+    if args.compare:
+        compare_models({"model": model, "compare": load_model(args.compare)}, frame, sizes, cores, args.repeats)
+        return
     rows: dict[str, dict[str, list[float]]] = {}
     for threads in (1, 2):
         torch.set_num_threads(threads)
