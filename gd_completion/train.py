@@ -121,7 +121,7 @@ def evaluate(model: GGDNet, partial: torch.Tensor, complete: torch.Tensor, batch
     return {k: CD_SCALE * v / partial.shape[0] for k, v in sums.items()}
 
 
-def _backward(model: GGDNet, total: torch.Tensor, max_grad_norm: float) -> bool:
+def _backward(model: torch.nn.Module, total: torch.Tensor, max_grad_norm: float) -> bool:
     """Backpropagate `total` and clip the gradient norm to `max_grad_norm` (0: no clipping); False (nothing to
     step) when the loss or the gradient is not finite: one bad batch must not turn every weight into NaN."""
     if not torch.isfinite(total):
@@ -129,6 +129,22 @@ def _backward(model: GGDNet, total: torch.Tensor, max_grad_norm: float) -> bool:
     total.backward()
     norm = torch.nn.utils.clip_grad_norm_(model.parameters(), max_grad_norm if max_grad_norm > 0 else math.inf)
     return bool(torch.isfinite(norm))
+
+
+def _skip_step(epoch: int, step: int, skipped: int, limit: int) -> int:
+    """Log a skipped step (0-based `epoch`, 1-based `step`) and return the epoch's new count of skipped steps;
+    TrainingError beyond `limit`."""
+    skipped += 1
+    log.warning("epoch %d step %d: non-finite loss or gradient, step skipped (%d this epoch)", epoch + 1, step,
+                skipped)
+    if skipped > limit:
+        raise TrainingError(f"epoch {epoch + 1}: more than {limit} steps with a non-finite loss or gradient; lower "
+                            "the learning rate or check the data")
+    return skipped
+
+
+def _no_finite_step(epoch: int) -> TrainingError:
+    return TrainingError(f"epoch {epoch + 1}: every step had a non-finite loss or gradient")
 
 
 def warm_start(model: GGDNet, path: str | Path, skip: Sequence[str] = ()) -> list[str]:
@@ -215,12 +231,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                               beta=settings.beta)
             optimizer.zero_grad(set_to_none=True)
             if not _backward(model, losses["total"], settings.max_grad_norm):
-                skipped += 1
-                log.warning("epoch %d step %d: non-finite loss or gradient, step skipped (%d this epoch)",
-                            epoch + 1, s // settings.batch_size + 1, skipped)
-                if skipped > settings.max_skipped_steps:
-                    raise TrainingError(f"epoch {epoch + 1}: more than {settings.max_skipped_steps} steps with a "
-                                        "non-finite loss or gradient; lower the learning rate or check the data")
+                skipped = _skip_step(epoch, s // settings.batch_size + 1, skipped, settings.max_skipped_steps)
                 continue
             optimizer.step()
             for k, v in losses.items():
@@ -231,7 +242,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                 log.info("epoch %d step %d/%d loss %.4f (%.1f s)", epoch + 1, steps,
                          -(-perm.numel() // settings.batch_size), sums["total"] / seen, time.monotonic() - t0)
         if seen == 0 and not stopped:
-            raise TrainingError(f"epoch {epoch + 1}: every step had a non-finite loss or gradient")
+            raise _no_finite_step(epoch)
         if seen == 0:   # time budget ran out before the first batch of this epoch
             save_checkpoint(last_path, model, preprocessing, optimizer=optimizer.state_dict(), epoch=epoch,
                             history=history, settings=asdict(settings), best_cd=best)

@@ -24,7 +24,7 @@ from .model.box_refiner import frame_targets
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
-from .train import PROGRESS_STEPS, TrainResult, _as_tensor
+from .train import PROGRESS_STEPS, TrainResult, _as_tensor, _backward, _no_finite_step, _skip_step
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,7 @@ class RefinerSettings:
     # size of the refiner added to a base without one (GGDConfig.refiner_widths, refiner_hidden)
     widths: tuple[int, ...] = (64, 128, 256)
     hidden: tuple[int, ...] = (256, 128)
+    max_skipped_steps: int = 20   # steps per epoch whose loss or gradient is not finite (skipped) before giving up
 
     def __post_init__(self) -> None:
         self.widths, self.hidden = tuple(int(w) for w in self.widths), tuple(int(w) for w in self.hidden)
@@ -173,21 +174,26 @@ def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, 
         perm = torch.randperm(len(train_data), generator=g)
         flips = torch.rand(len(train_data), generator=g) < 0.5
         model.refiner.train(settings.norm_train_epochs is None or epoch < settings.norm_train_epochs)
-        total, t0 = 0.0, time.monotonic()
+        total, skipped, t0 = 0.0, 0, time.monotonic()
         for step in range(steps_per_epoch):
             idx = perm[step * settings.batch_size:(step + 1) * settings.batch_size]
             partial, target = mirrored_batch(train_data.partial[idx], train_data.target[idx], flips[idx])
             loss = frame_loss(model, partial.to(device), train_data.shape[idx].to(device), target.to(device))
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            if not _backward(model.refiner, loss, 0.0):
+                skipped = _skip_step(epoch, step + 1, skipped, settings.max_skipped_steps)
+                continue
             for group in optimizer.param_groups:
                 group["lr"] = settings.lr_at(epoch * steps_per_epoch + step, total_steps)
             optimizer.step()
             total += loss.item()
             if (step + 1) % PROGRESS_STEPS == 0:
                 log.info("epoch %d step %d/%d loss %.4f (%.1f s)", epoch + 1, step + 1, steps_per_epoch,
-                         total / (step + 1), time.monotonic() - t0)
-        record = {"epoch": epoch + 1, "seconds": time.monotonic() - t0, "train_loss": total / steps_per_epoch,
+                         total / (step + 1 - skipped), time.monotonic() - t0)
+        if skipped == steps_per_epoch:
+            raise _no_finite_step(epoch)
+        record = {"epoch": epoch + 1, "seconds": time.monotonic() - t0, "skipped_steps": skipped,
+                  "train_loss": total / (steps_per_epoch - skipped),
                   **{f"val_{k}": v for k, v in validate(model, val_data, device).items()}}
         history.append(record)
         log.info("epoch %d/%d loss %.4f | val loss %.4f, RMS in units (given box): %s | %.1fs", epoch + 1,

@@ -148,6 +148,39 @@ def test_the_refiner_size_is_a_setting_kept_in_the_checkpoint(tmp_path):
     assert [m.out_features for m in model.refiner.head if isinstance(m, torch.nn.Linear)] == [12]
 
 
+def test_a_refiner_step_with_a_non_finite_loss_or_gradient_is_skipped_and_counted(tmp_path, monkeypatch):
+    import gd_completion.train_refiner as refiner_training
+    from gd_completion.errors import TrainingError
+
+    frame_loss = refiner_training.frame_loss
+    calls = {"n": 0}
+
+    def bad_steps(model, partial, shape, target):
+        loss = frame_loss(model, partial, shape, target)
+        calls["n"] += 1
+        if calls["n"] % 4 == 1:     # a NaN loss
+            return loss * float("nan")
+        if calls["n"] % 4 == 2:     # a finite loss whose gradient is NaN
+            return loss + torch.sqrt(model.refiner.vector(partial, shape).sum() * 0.0)
+        return loss
+
+    base = tmp_path / "base.pt"
+    save_checkpoint(base, GGDNet(TINY))
+    monkeypatch.setattr(refiner_training, "frame_loss", bad_steps)
+    settings = RefinerSettings(epochs=2, batch_size=32)
+    result = train_refiner(base, _offset_data(128, 0), _offset_data(32, 1), tmp_path / "run", settings)
+    assert [h["skipped_steps"] for h in result.history] == [2, 2]   # 4 steps an epoch, the first two bad
+    assert all(np.isfinite(h["train_loss"]) for h in result.history)
+    model, _ = load_checkpoint(result.last_path)
+    assert all(torch.isfinite(t).all() for t in model.state_dict().values())
+    with pytest.raises(TrainingError, match="more than 1 steps"):
+        train_refiner(base, _offset_data(128, 0), _offset_data(32, 1), tmp_path / "strict",
+                      replace(settings, max_skipped_steps=1))
+    monkeypatch.setattr(refiner_training, "frame_loss", lambda *args: frame_loss(*args) * float("nan"))
+    with pytest.raises(TrainingError, match="every step had a non-finite loss"):
+        train_refiner(base, _offset_data(64, 0), _offset_data(32, 1), tmp_path / "none", settings)
+
+
 def _norm_statistics(path) -> torch.Tensor:
     model, _ = load_checkpoint(path)
     return torch.cat([m.running_mean for m in model.refiner.modules() if isinstance(m, torch.nn.BatchNorm1d)])
