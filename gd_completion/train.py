@@ -40,6 +40,7 @@ class TrainSettings:
     lr_final: float | None = None   # cosine decay per epoch from lr to lr_final (None: constant lr)
     max_grad_norm: float = 10.0     # gradient clipping (0 disables)
     max_skipped_steps: int = 20     # steps per epoch whose loss or gradient is not finite (skipped) before giving up
+    freeze: tuple[str, ...] = ()    # parameter-name prefixes kept as they are (no gradient, batch norms in eval mode)
     seed: int = 0
     device: str = "cpu"
     time_budget_s: float | None = None
@@ -131,6 +132,25 @@ def _backward(model: torch.nn.Module, total: torch.Tensor, max_grad_norm: float)
     return bool(torch.isfinite(norm))
 
 
+def frozen_modules(model: torch.nn.Module, prefixes: Sequence[str]) -> list[torch.nn.Module]:
+    """Stop the gradients of every parameter whose name starts with one of `prefixes`; the submodules they name
+    (to keep in eval mode, `train_mode`). TrainingError for a prefix that names no parameter."""
+    unused = [p for p in prefixes if not any(n.startswith(p) for n, _ in model.named_parameters())]
+    if unused:
+        raise TrainingError(f"freeze: no parameter name starts with {unused}")
+    for name, parameter in model.named_parameters():
+        if any(name.startswith(p) for p in prefixes):
+            parameter.requires_grad_(False)
+    return [m for n, m in model.named_modules() if n and any(f"{n}.".startswith(p) for p in prefixes)]
+
+
+def train_mode(model: torch.nn.Module, frozen: Sequence[torch.nn.Module]) -> None:
+    """`model` in training mode but its `frozen` submodules (their batch norms keep their running statistics)."""
+    model.train()
+    for module in frozen:
+        module.eval()
+
+
 def _skip_step(epoch: int, step: int, skipped: int, limit: int) -> int:
     """Log a skipped step (0-based `epoch`, 1-based `step`) and return the epoch's new count of skipped steps;
     TrainingError beyond `limit`."""
@@ -202,8 +222,10 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                  len(model.state_dict()) - len(fresh), ", ".join(fresh) or "none")
     tr_x, tr_y, tr_s = _pairs(train_data, "training data", config)
     va_x, va_y, va_s = _pairs(val_data, "validation data", config)
-    model.to(device).train()
-    optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr)
+    frozen = frozen_modules(model, settings.freeze)
+    model.to(device)
+    train_mode(model, frozen)
+    optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings.lr)
     if optimizer_state is not None:
         optimizer.load_state_dict(optimizer_state)
     log.info("training GGDNet (%d parameters) on %d samples, validating on %d, device %s",
@@ -215,7 +237,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         lam = settings.lam_at(epoch)
         for group in optimizer.param_groups:
             group["lr"] = settings.lr_at(epoch)
-        model.train()
+        train_mode(model, frozen)
         g = torch.Generator().manual_seed(settings.seed * 100003 + epoch)   # resumable shuffling
         perm = torch.randperm(tr_x.shape[0], generator=g)
         sums: dict[str, float] = {}

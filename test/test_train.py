@@ -332,3 +332,29 @@ def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name
     for key in ("epochs", "generation_epochs", "lam", "batch_size", "lr", "lr_final", "seed"):
         assert meta["settings"][key] == recipe[key], key
     assert GGDConfig.from_dict(meta["config"]) == GGDConfig.from_dict(recipe["config"])
+
+
+def test_frozen_parameters_and_their_batch_norms_stay_as_they_are(tmp_path):
+    """`freeze` keeps a refined network's box refiner exactly as it was (weights and running statistics) while
+    the rest trains; a prefix that names nothing is an error."""
+    from dataclasses import replace
+
+    config = replace(TINY, box_conditioning=True, box_refinement=True, refiner_widths=(8, 16), refiner_hidden=(16,))
+    start = tmp_path / "start.pt"
+    torch.manual_seed(0)
+    from gd_completion.model import save_checkpoint
+    model = GGDNet(config)
+    torch.nn.init.normal_(model.refiner.out.weight, std=0.1)   # a refiner that moves the frame
+    save_checkpoint(start, model)
+    partial, complete = _data(8, 0)
+    sizes = np.tile(np.array([[4.5, 1.8, 1.5]], np.float32), (8, 1))
+    res = train(config, (partial, complete, sizes), (partial[:4], complete[:4], sizes[:4]), tmp_path / "run",
+                _settings(epochs=2, generation_epochs=0, freeze=("refiner.",)), init_from=start)
+    before, after = model.state_dict(), load_model(res.last_path).state_dict()
+    refiner = [k for k in before if k.startswith("refiner.")]
+    assert any("running_mean" in k for k in refiner)
+    assert all(torch.equal(before[k], after[k]) for k in refiner)
+    assert not all(torch.equal(before[k], after[k]) for k in before if k.startswith("deform."))
+    with pytest.raises(TrainingError, match="no parameter name starts with"):
+        train(config, (partial, complete, sizes), (partial[:4], complete[:4], sizes[:4]), tmp_path / "bad",
+              _settings(epochs=1, freeze=("refinr.",)), init_from=start)

@@ -66,6 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="warm start: copy every tensor of this checkpoint whose name and shape match")
     parser.add_argument("--init-skip", action="append", default=[], metavar="PREFIX",
                         help="with --init-from, keep tensors whose name starts with PREFIX fresh (repeatable)")
+    parser.add_argument("--freeze", action="append", default=[], metavar="PREFIX",
+                        help="keep the parameters whose name starts with PREFIX as they are (no gradient, batch "
+                        "norms in eval mode; e.g. refiner. to fine-tune a refined network around its box refiner)")
     parser.add_argument("--sampling", default="v1", choices=sorted(SAMPLING_PRESETS),
                         help="synthetic sampling preset (v1: the shipped v1 model's data; v2: every kind, wider sizes, "
                         "five sensor families, detector-box noise; see synth.dataset.SampleOptions)")
@@ -79,7 +82,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 #: Options a recipe may set (argparse destinations), and their command-line defaults.
 RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "epochs", "generation_epochs", "lam", "alpha", "beta",
-               "batch_size", "lr", "lr_final", "num_control", "config", "init_from", "init_skip", "sampling")
+               "batch_size", "lr", "lr_final", "num_control", "config", "init_from", "init_skip", "sampling",
+               "freeze")
 RECIPE_DEFAULTS: dict[str, Any] = {}
 _PATH_KEYS = ("meshes", "init_from")
 SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
@@ -249,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
                              alpha=args.alpha, beta=args.beta,
                              batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
-                             device=device,
+                             device=device, freeze=tuple(args.freeze),
                              time_budget_s=args.time_budget)
     with atomic_path(args.output / "settings.json") as tmp:
         tmp.write_text(json.dumps(
