@@ -46,12 +46,14 @@ def _vehicles(b: int, n: int) -> tuple[torch.Tensor, np.ndarray]:
 
 
 def _interleaved(fns: dict[str, Callable[[], object]], repeats: int, per: int) -> dict[str, list[float]]:
-    """ms per vehicle of each function over `repeats` rounds, one call of each per round (after a warm-up)."""
+    """ms per vehicle of each function over `repeats` rounds, one call of each per round (after a warm-up; the
+    order reversed every other round)."""
     for fn in fns.values():
         fn()
     times: dict[str, list[float]] = {name: [] for name in fns}
-    for _ in range(repeats):
-        for name, fn in fns.items():
+    order = list(fns.items())
+    for round_ in range(repeats):
+        for name, fn in order if round_ % 2 == 0 else order[::-1]:   # alternate who runs first
             start = time.perf_counter()
             fn()
             times[name].append(1e3 * (time.perf_counter() - start) / per)
@@ -171,11 +173,14 @@ def compare_models(models: dict[str, GGDNet], frame: torch.Tensor, sizes: np.nda
     shapes = box_shape(sizes)
     one = _interleaved({n: _forward(m, frame[:1], shapes[:1], "fast") for n, m in models.items()}, repeats, 1)
     completers = {n: VehicleCompleter(m, threads=cores) for n, m in models.items()}
-    partials = list(frame.numpy())
-    many = _interleaved({n: _frame(c, partials, sizes, "fast") for n, c in completers.items()},
-                        max(3, repeats // 2), len(partials))
-    for c in completers.values():
-        c.close()
+    try:
+        partials = list(frame.numpy())
+        many = _interleaved({n: _frame(c, partials, sizes, "fast") for n, c in completers.items()},
+                            max(3, repeats // 2), len(partials))
+    finally:
+        for c in completers.values():
+            c.close()
+    print(", ".join(f"{n}: {m.num_parameters():,} parameters" for n, m in models.items()))
     for name, times in (("batch 1, 1 thread", one), (f"16-vehicle frame, {cores} vehicle threads", many)):
         cells = "  ".join(f"{n} {min(t):6.2f} / {statistics.median(t):6.2f}" for n, t in times.items())
         first, *rest = times.values()
@@ -199,6 +204,9 @@ def main() -> None:
     ap.add_argument("--config", default=None,
                     help="with --untrained: JSON file of GGDConfig fields (e.g. recipes/ggd_v2_config.json)")
     args = ap.parse_args()
+    if args.compare and (args.stages or args.train or args.profile or args.untrained or args.device != "cpu"):
+        ap.error("--compare times the CPU fast path of two checkpoints only: without --stages, --train, --profile, "
+                 "--untrained and --device")
     torch.manual_seed(0)
     if args.untrained:
         fields = json.loads(Path(args.config).read_text()) if args.config else {}

@@ -163,7 +163,7 @@ def _skip_step(epoch: int, step: int, skipped: int, limit: int) -> int:
     return skipped
 
 
-def _no_finite_step(epoch: int) -> TrainingError:
+def _no_finite_step_error(epoch: int) -> TrainingError:
     return TrainingError(f"epoch {epoch + 1}: every step had a non-finite loss or gradient")
 
 
@@ -203,7 +203,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
 
     torch.manual_seed(settings.seed)
     model = GGDNet(config)
-    optimizer_state = None
+    optimizer_state, resumed_freeze = None, None
     start_epoch, history, best = 0, [], math.inf
     if resume and last_path.is_file():
         data = read_checkpoint(last_path)
@@ -212,6 +212,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         model = model_from_checkpoint(data, last_path)
         config = model.config
         optimizer_state = data["optimizer"]
+        resumed_freeze = tuple(data.get("settings", {}).get("freeze", ()))
         start_epoch = int(data["epoch"])
         history = list(data.get("history", []))
         best = float(data.get("best_cd", math.inf))
@@ -223,6 +224,11 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     tr_x, tr_y, tr_s = _pairs(train_data, "training data", config)
     va_x, va_y, va_s = _pairs(val_data, "validation data", config)
     frozen = frozen_modules(model, settings.freeze)
+    if resumed_freeze is not None and resumed_freeze != tuple(settings.freeze):
+        raise CheckpointError(f"checkpoint {last_path}: trained with freeze {list(resumed_freeze)}, resumed with "
+                              f"{list(settings.freeze)}: resume with the same freeze")
+    if not any(p.requires_grad for p in model.parameters()):
+        raise TrainingError(f"freeze {list(settings.freeze)} leaves no parameter to train")
     model.to(device)
     train_mode(model, frozen)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings.lr)
@@ -264,7 +270,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                 log.info("epoch %d step %d/%d loss %.4f (%.1f s)", epoch + 1, steps,
                          -(-perm.numel() // settings.batch_size), sums["total"] / seen, time.monotonic() - t0)
         if seen == 0 and not stopped:
-            raise _no_finite_step(epoch)
+            raise _no_finite_step_error(epoch)
         if seen == 0:   # time budget ran out before the first batch of this epoch
             save_checkpoint(last_path, model, preprocessing, optimizer=optimizer.state_dict(), epoch=epoch,
                             history=history, settings=asdict(settings), best_cd=best)

@@ -22,9 +22,10 @@ from torch.nn.functional import smooth_l1_loss
 from .errors import CheckpointError, DataFormatError
 from .model.box_refiner import frame_targets
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
+from .model.config import GGDConfig
 from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
-from .train import PROGRESS_STEPS, TrainResult, _as_tensor, _backward, _no_finite_step, _skip_step
+from .train import PROGRESS_STEPS, TrainResult, _as_tensor, _backward, _no_finite_step_error, _skip_step
 
 log = logging.getLogger(__name__)
 
@@ -90,8 +91,12 @@ class FrameData:
 
 def with_refiner(model: GGDNet, widths: Sequence[int] = (64, 128, 256), hidden: Sequence[int] = (256, 128)
                  ) -> GGDNet:
-    """`model` with a fresh (identity) box refiner of these sizes added, or itself when it has one."""
+    """`model` with a fresh (identity) box refiner of these sizes added, or itself when it has one of these sizes;
+    CheckpointError when it has one of other sizes."""
     if model.refiner is not None:
+        if (model.config.refiner_widths, model.config.refiner_hidden) != (tuple(widths), tuple(hidden)):
+            raise CheckpointError(f"the base has a box refiner of widths {list(model.config.refiner_widths)}, "
+                                  f"hidden {list(model.config.refiner_hidden)}, not {list(widths)}, {list(hidden)}")
         return model
     refined = GGDNet(replace(model.config, box_refinement=True, refiner_widths=tuple(widths),
                              refiner_hidden=tuple(hidden)))
@@ -160,7 +165,11 @@ def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, 
     start_epoch, history, best = 0, [], math.inf
     if resume and last_path.is_file():
         data = read_checkpoint(last_path)
-        if not {"optimizer", "epoch", "best_loss"} <= set(data) or data["config"] != model.config.to_dict():
+        try:
+            same_model = GGDConfig.from_dict(data["config"]) == model.config
+        except (KeyError, ValueError, TypeError):
+            same_model = False
+        if not {"optimizer", "epoch", "best_loss"} <= set(data) or not same_model:
             raise CheckpointError(f"checkpoint {last_path}: not a resumable refiner checkpoint of {base}")
         model.load_state_dict(data["state_dict"])
         optimizer.load_state_dict(data["optimizer"])
@@ -191,7 +200,7 @@ def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, 
                 log.info("epoch %d step %d/%d loss %.4f (%.1f s)", epoch + 1, step + 1, steps_per_epoch,
                          total / (step + 1 - skipped), time.monotonic() - t0)
         if skipped == steps_per_epoch:
-            raise _no_finite_step(epoch)
+            raise _no_finite_step_error(epoch)
         record = {"epoch": epoch + 1, "seconds": time.monotonic() - t0, "skipped_steps": skipped,
                   "train_loss": total / (steps_per_epoch - skipped),
                   **{f"val_{k}": v for k, v in validate(model, val_data, device).items()}}

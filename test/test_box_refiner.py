@@ -243,14 +243,41 @@ def test_refiner_recipe_is_checked(tmp_path):
         read_recipe(bad)
 
 
+@pytest.mark.parametrize("sizes", [{"widths": 32}, {"widths": [32, 0]}, {"hidden": ["a"]}])
+def test_refiner_recipe_sizes_are_checked_before_any_data(tmp_path, sizes):
+    from gd_completion.tools.train_refiner import recipe_settings
+    with pytest.raises(DataFormatError, match="recipe.json"):
+        recipe_settings({"base": "x.pt", "data": ["y.json"], **sizes}, tmp_path / "recipe.json")
+
+
+def test_a_base_refiner_of_other_sizes_is_refused_and_an_older_run_resumes(tmp_path):
+    """A base that has a refiner keeps it only when the sizes asked are its own; a `last.pt` whose config lacks
+    the refiner-size keys (written before they existed) resumes."""
+    from gd_completion.errors import CheckpointError
+    base = tmp_path / "base.pt"
+    save_checkpoint(base, with_refiner(GGDNet(TINY), (8, 16), (12,)))
+    with pytest.raises(CheckpointError, match="widths"):
+        train_refiner(base, _offset_data(64, 0), _offset_data(32, 1), tmp_path / "other", RefinerSettings(epochs=1))
+    plain = tmp_path / "plain.pt"   # a run of the default sizes, its last.pt as written before they were keys
+    save_checkpoint(plain, GGDNet(TINY))
+    settings = RefinerSettings(epochs=2, batch_size=32)
+    first = train_refiner(plain, _offset_data(64, 0), _offset_data(32, 1), tmp_path / "run",
+                          replace(settings, epochs=1))
+    data = torch.load(first.last_path, weights_only=False)
+    data["config"] = {k: v for k, v in data["config"].items() if k not in ("refiner_widths", "refiner_hidden")}
+    torch.save(data, first.last_path)
+    resumed = train_refiner(plain, _offset_data(64, 0), _offset_data(32, 1), tmp_path / "run", settings, resume=True)
+    assert len(resumed.history) == 2
+
+
 REPO = Path(__file__).resolve().parents[1]
 # each refiner checkpoint in the repository and the recipe whose run it is
 REFINER_RUNS = [(DEFAULT_WEIGHTS, "box_refiner_small.json"),
                 (REPO / "docs/evaluation/ablation/ggd_v21_refiner_large.pt", "box_refiner.json")]
 
 
-@pytest.mark.parametrize("_, recipe_name", REFINER_RUNS)
-def test_the_repository_refiner_recipes_name_what_exists(_, recipe_name):
+@pytest.mark.parametrize("recipe_name", [recipe for _, recipe in REFINER_RUNS])
+def test_the_repository_refiner_recipes_name_what_exists(recipe_name):
     recipe = read_recipe(REPO / "recipes" / recipe_name)
     assert (REPO / recipe["base"]).is_file()
     assert all((REPO / r).is_file() for r in recipe["data"])

@@ -85,6 +85,13 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
     if factory is ConcatFusion:
         assert all(later <= earlier + 1e-9 for earlier, later in zip(raw, raw[1:]))  # supersets: never worse
         assert raw[-1] == 0.0  # all 8 frames fused = the aggregate the reference is sampled from
+        # no cap (the default): every frame given is fused, here the same 8
+        torch.manual_seed(0)
+        uncapped = fusion_eval.evaluate_fusion(GGDNet(TINY).eval(), root, frames=range(0, 8), consistency_frames=4,
+                                               max_vehicles=2, fusion_factory=factory, reference_points=1024)
+        assert uncapped.max_frames is None
+        assert [r.raw_fused for r in uncapped.coverage if r.n_vehicles] == [r.raw_fused for r in result.coverage
+                                                                             if r.n_vehicles]
     stationary = result.consistency[0]
     assert stationary.group == "stationary" and stationary.n_pairs >= 1
     assert math.isfinite(stationary.single) and math.isfinite(stationary.fused) and stationary.single > 0
@@ -102,6 +109,8 @@ def test_fusion_section_text():
     assert "Target (a)/(c) <= 0.60 at k = 5: 0.500, met." in text
     assert "stationary 0.250 (met; without the merge 0.400), moving 0.900 (not met; without the merge nan)" in text
     assert "first 20 frames of each vehicle" in text and "first 10 frames" in text
+    every = fusion_section(fusion_eval.FusionResult(cov, cons, None, 10, None, 3, 2, {}))
+    assert "every frame of each vehicle fused" in every and "| all |" in every and "all (<=" not in every
 
 
 def test_evaluate_no_fusion_skips_the_section(tmp_path, shared_data):

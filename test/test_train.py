@@ -9,7 +9,7 @@ import pytest
 import torch
 from test_model import TINY
 
-from gd_completion.errors import DataFormatError, TrainingError
+from gd_completion.errors import CheckpointError, DataFormatError, TrainingError
 from gd_completion.model import GGDConfig, GGDNet, load_model, read_checkpoint_metadata
 from gd_completion.train import TrainSettings, train, warm_start
 
@@ -358,3 +358,14 @@ def test_frozen_parameters_and_their_batch_norms_stay_as_they_are(tmp_path):
     with pytest.raises(TrainingError, match="no parameter name starts with"):
         train(config, (partial, complete, sizes), (partial[:4], complete[:4], sizes[:4]), tmp_path / "bad",
               _settings(epochs=1, freeze=("refinr.",)), init_from=start)
+    with pytest.raises(TrainingError, match="leaves no parameter to train"):
+        train(config, (partial, complete, sizes), (partial[:4], complete[:4], sizes[:4]), tmp_path / "all",
+              _settings(epochs=1, freeze=("",)), init_from=start)
+    # a resume keeps the freeze of the run: another one is refused, the same one goes on
+    with pytest.raises(CheckpointError, match="resume with the same freeze"):
+        train(config, (partial, complete, sizes), (partial[:4], complete[:4], sizes[:4]), tmp_path / "run",
+              _settings(epochs=3, generation_epochs=0), resume=True)
+    resumed = train(config, (partial, complete, sizes), (partial[:4], complete[:4], sizes[:4]), tmp_path / "run",
+                    _settings(epochs=3, generation_epochs=0, freeze=("refiner.",)), resume=True)
+    assert len(resumed.history) == 3
+    assert all(torch.equal(before[k], load_model(resumed.last_path).state_dict()[k]) for k in refiner)

@@ -5,10 +5,13 @@ import argparse
 import json
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gd_completion.atomic import atomic_path, make_folder
 from gd_completion.errors import DataFormatError
+
+if TYPE_CHECKING:
+    from gd_completion.train_refiner import RefinerSettings
 
 # Keys of a refiner recipe (recipes/box_refiner*.json) besides "name" and "notes": the base checkpoint, the
 # training recipes whose data sets it uses, and fields of train_refiner.RefinerSettings.
@@ -45,16 +48,30 @@ def read_recipe(path: Path) -> dict[str, Any]:
     return recipe
 
 
+def recipe_settings(recipe: dict[str, Any], path: Path, device: str = "cpu") -> RefinerSettings:
+    """The recipe's `RefinerSettings`, its refiner sizes checked; DataFormatError naming the file otherwise."""
+    from gd_completion.model.config import GGDConfig
+    from gd_completion.train_refiner import RefinerSettings
+
+    try:
+        settings = RefinerSettings(**{k: recipe[k] for k in SETTING_KEYS if k in recipe}, device=device)
+        GGDConfig(box_conditioning=True, box_refinement=True, refiner_widths=settings.widths,
+                  refiner_hidden=settings.hidden)
+    except (TypeError, ValueError) as exc:
+        raise DataFormatError(f"{path}: {exc}") from exc
+    return settings
+
+
 def run(args: argparse.Namespace) -> int:
     from gd_completion.tools.train import recipe_datasets
-    from gd_completion.train_refiner import FrameData, RefinerSettings, train_refiner
+    from gd_completion.train_refiner import FrameData, train_refiner
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     recipe = read_recipe(args.recipe)
+    settings = recipe_settings(recipe, args.recipe, args.device)   # before any data is generated
     output = make_folder(args.output or Path("runs") / recipe.get("name", args.recipe.stem))
     cache = make_folder(args.cache)
     sets = [recipe_datasets(Path(r), cache, args.workers) for r in recipe["data"]]
-    settings = RefinerSettings(**{k: recipe[k] for k in SETTING_KEYS if k in recipe}, device=args.device)
     with atomic_path(output / "settings.json") as tmp:
         tmp.write_text(json.dumps({"recipe": str(args.recipe), **recipe}, indent=2))
     result = train_refiner(Path(recipe["base"]), FrameData.from_datasets([t for t, _ in sets]),
