@@ -20,7 +20,7 @@ import torch
 from torch.nn.functional import smooth_l1_loss
 
 from .errors import CheckpointError, DataFormatError
-from .model.box_refiner import frame_targets
+from .model.box_refiner import FRAME_NAMES, frame_targets
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.config import GGDConfig
 from .model.network import GGDNet, box_shape
@@ -44,8 +44,8 @@ class RefinerSettings:
     # frozen (None: every epoch). The shipped run froze them after epoch 1 (docs/MODEL.md, "Box refinement").
     norm_train_epochs: int | None = None
     # size of the refiner added to a base without one (GGDConfig.refiner_widths, refiner_hidden)
-    widths: tuple[int, ...] = (64, 128, 256)
-    hidden: tuple[int, ...] = (256, 128)
+    widths: tuple[int, ...] = GGDConfig.refiner_widths
+    hidden: tuple[int, ...] = GGDConfig.refiner_hidden
     max_skipped_steps: int = 20   # steps per epoch whose loss or gradient is not finite (skipped) before giving up
 
     def __post_init__(self) -> None:
@@ -89,8 +89,8 @@ class FrameData:
         return self.partial.shape[0]
 
 
-def with_refiner(model: GGDNet, widths: Sequence[int] = (64, 128, 256), hidden: Sequence[int] = (256, 128)
-                 ) -> GGDNet:
+def with_refiner(model: GGDNet, widths: Sequence[int] = GGDConfig.refiner_widths,
+                 hidden: Sequence[int] = GGDConfig.refiner_hidden) -> GGDNet:
     """`model` with a fresh (identity) box refiner of these sizes added, or itself when it has one of these sizes;
     CheckpointError when it has one of other sizes."""
     if model.refiner is not None:
@@ -131,12 +131,11 @@ def validate(model: GGDNet, data: FrameData, device: torch.device | str, batch: 
              for s in range(0, len(data), batch)]
     model.refiner.train(was_training)
     pred, units = torch.cat(preds), model.refiner.units.cpu()
-    names = ("x", "y", "z", "yaw", "log_length", "log_width", "log_height")
     rms = ((pred - data.target) ** 2).mean(0).sqrt() / units
     given = (data.target ** 2).mean(0).sqrt() / units
     return {"loss": float(smooth_l1_loss(pred / units, data.target / units)),
-            **{f"rms_{n}": float(v) for n, v in zip(names, rms)},
-            **{f"given_rms_{n}": float(v) for n, v in zip(names, given)}}
+            **{f"rms_{n}": float(v) for n, v in zip(FRAME_NAMES, rms)},
+            **{f"given_rms_{n}": float(v) for n, v in zip(FRAME_NAMES, given)}}
 
 
 def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, out_dir: str | Path,
@@ -208,7 +207,7 @@ def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, 
         log.info("epoch %d/%d loss %.4f | val loss %.4f, RMS in units (given box): %s | %.1fs", epoch + 1,
                  settings.epochs, record["train_loss"], record["val_loss"],
                  ", ".join(f"{n} {record[f'val_rms_{n}']:.3f} ({record[f'val_given_rms_{n}']:.3f})"
-                           for n in ("x", "y", "z", "yaw", "log_length", "log_width", "log_height")),
+                           for n in FRAME_NAMES),
                  record["seconds"])
         extra = {"epoch": epoch + 1, "history": history, "settings": asdict(settings), "best_loss": best,
                  "base": str(base)}

@@ -192,9 +192,9 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
 
 def fusion_section(result: FusionResult) -> str:
     """Coverage error x1e3 after k fused frames and frame-to-frame consistency (Chamfer x1e4), with the targets."""
-    caps = ("every frame of each vehicle fused" if result.max_frames is None
-            else f"the first {result.max_frames} frames of each vehicle fused")
-    caps = (caps
+    fused = ("every frame of each vehicle fused" if result.max_frames is None
+             else f"the first {result.max_frames} frames of each vehicle fused")
+    caps = (fused
             + (f", the first {result.max_vehicles} stationary and {result.max_vehicles} moving vehicles"
                if result.max_vehicles is not None else "")
             + f" ({result.n_stationary} stationary, {result.n_moving} moving vehicles with >= 50 points in a frame)")

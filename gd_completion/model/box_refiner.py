@@ -19,6 +19,8 @@ FRAME_UNITS = (0.04, 0.04, 0.015, 0.08, 0.06, 0.06, 0.06)
 # Bounds of each value (beyond the training data's box errors): an input unlike any training scan cannot move
 # the frame further than this (0.3 lengths, 29 deg, size factors 0.67-1.49).
 FRAME_LIMITS = (0.3, 0.3, 0.15, 0.5, 0.4, 0.4, 0.4)
+# Names of the regressed values, in order (training logs and validation records).
+FRAME_NAMES = ("x", "y", "z", "yaw", "log_length", "log_width", "log_height")
 
 
 class BoxFrame(NamedTuple):
@@ -76,7 +78,7 @@ def frame_targets(box_noise: np.ndarray, yaw: np.ndarray, size: np.ndarray, true
 class BoxRefiner(nn.Module):
     """PointNet (shared MLP, max pool, MLP) from a vehicle's points and its box shape to its `BoxFrame`."""
 
-    def __init__(self, widths: tuple[int, ...] = (64, 128, 256), hidden: tuple[int, ...] = (256, 128)) -> None:
+    def __init__(self, widths: tuple[int, ...], hidden: tuple[int, ...]) -> None:
         super().__init__()
         layers: list[nn.Module] = []
         cin = 3

@@ -70,7 +70,7 @@ class GGDConfig:
             problems.append("radius, ball_m, knn_k, gcn_width must be positive, gcn_blocks >= 0")
         if self.knn_k >= self.num_output:
             problems.append("knn_k must be < num_output")
-        if not self.refiner_widths or min(self.refiner_widths + self.refiner_hidden, default=1) < 1:
+        if not self.refiner_widths or min(self.refiner_widths + self.refiner_hidden) < 1:
             problems.append("refiner_widths needs at least one layer and every refiner width must be positive")
         if self.box_refinement and not self.box_conditioning:
             problems.append("box_refinement needs box_conditioning (the refiner reads the box shape)")

@@ -309,6 +309,10 @@ class GGDNet(nn.Module):
         control = gather_points(partial, control_index)
         return code, coarse, control, control_index, order
 
+    def _in_chunks(self, partial: Tensor) -> bool:
+        """Whether this batch runs in eval chunks of `eval_batch_chunk` clouds (eval mode, a larger batch)."""
+        return not self.training and partial.shape[0] > self.eval_batch_chunk > 0
+
     def _chunks(self, partial: Tensor, order: Tensor, shape: Tensor | None) -> list[tuple]:
         """(partial, order, shape) per eval chunk of `eval_batch_chunk` clouds."""
         step = self.eval_batch_chunk
@@ -320,7 +324,7 @@ class GGDNet(nn.Module):
         In eval mode the refiner runs one chunk at a time, like the rest (batch-independent results)."""
         if self.refiner is None or shape is None:
             return partial, shape, None
-        if not self.training and partial.shape[0] > self.eval_batch_chunk > 0:
+        if self._in_chunks(partial):
             step = self.eval_batch_chunk
             vector = torch.cat([self.refiner.vector(p, s) for p, s in zip(partial.split(step), shape.split(step))])
         else:
@@ -334,7 +338,7 @@ class GGDNet(nn.Module):
         self._check(partial, shape)
         partial, shape, frame = self._refine(partial, shape)
         order = self._order(partial)
-        if not self.training and partial.shape[0] > self.eval_batch_chunk > 0:   # same chunks as forward
+        if self._in_chunks(partial):   # same chunks as forward
             parts = [self._generate(*chunk) for chunk in self._chunks(partial, order, shape)]
             generated = torch.cat([torch.cat([p[2], p[1]], 1) for p in parts], 0)
         else:
@@ -355,7 +359,7 @@ class GGDNet(nn.Module):
         self._check(partial, shape)
         partial, shape, frame = self._refine(partial, shape)
         order = self._order(partial)    # one FPS loop for the whole batch
-        if not self.training and partial.shape[0] > self.eval_batch_chunk > 0:
+        if self._in_chunks(partial):
             parts = [self._forward(*chunk) for chunk in self._chunks(partial, order, shape)]
             out = GGDOutput(*(torch.cat(ts, 0) for ts in zip(*parts)))
         else:
