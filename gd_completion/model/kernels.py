@@ -13,8 +13,9 @@ The k nearest candidates are found by scanning the x-sorted ref points outwards 
 (left, then right) and stopping once dx*dx exceeds the current k-th distance: the full distance is
 never smaller than dx*dx in float32, so the pruned scan selects the same k smallest entries as a scan
 of the whole window. With a grid `cell` (the kNN graph), a uniform-grid search first finds the exact k
-nearest of each query by rings of cells; where all of them lie within `margin` they are the window's too
-(the window holds every point within `margin` in x of the query), and only the other queries are scanned.
+nearest of each query whose k-th lies within the 3 x 3 x 3 cells around it; where all of them lie within
+`margin` they are the window's too (the window holds every point within `margin` in x of the query), and
+only the other queries are scanned.
 """
 from __future__ import annotations
 
@@ -251,9 +252,12 @@ def _knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, b
 
 @numba.njit(cache=True, nogil=True)
 def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, cell: float, exclude_self: bool,
-                    done: np.ndarray, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
-    """The exact k nearest ref points of each query by a uniform-grid ring search; sets done[qi] (and the outputs)
-    only where all k lie within `margin` (the window search's result then, up to the order of exact ties)."""
+                    windowed: bool, done: np.ndarray, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
+    """The exact k nearest ref points of each query among those in the 3 x 3 x 3 cells around its own cell of a
+    uniform grid; sets done[qi] (and the outputs) only where they are its k nearest of all (the k-th lies within
+    the block) and, `windowed`, all k lie within `margin` (the window search's result then, up to the order of
+    exact ties). The block's candidates are gathered once per cell, its own cell first (a tight k-th distance
+    early), and every query of the cell computes its distances to them in one vectorisable pass."""
     q, n = query.shape[0], ref.shape[0]
     if q == 0 or n == 0 or not (np.isfinite(query).all() and np.isfinite(ref).all()):
         return   # nothing to grid (a non-finite point has no cell): the window search answers every query
@@ -275,63 +279,80 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
     for a in range(3):
         dims[a] = int((hi[a] - lo[a]) / c) + 1
         cells *= dims[a]
-    start, ridx = bucket_points(ref, lo, np.full(3, c), dims)   # the ref points sorted by cell
+    width = np.full(3, c)
+    start, ridx = bucket_points(ref, lo, width, dims)   # the ref points sorted by cell
     pairs = 0   # point pairs sharing a cell: the grid's work grows with it
     for i in range(cells):
         pairs += (start[i + 1] - start[i]) ** 2
     if pairs > 64 * (n + q):
         return   # a far outlier packed the cloud into a few cells: the window search is cheaper
-    rs = np.empty((n, 3), np.float32)
+    qstart, qidx = (start, ridx) if exclude_self else bucket_points(query, lo, width, dims)
+    rs = np.empty((3, n), np.float32)   # the ref points in cell order, one row per axis
     for p in range(n):
-        rs[p] = ref[ridx[p]]
-    within = margin * margin * np.float32(1.0 - 1e-5)   # all k inside the window, with room for rounding
+        for a in range(3):
+            rs[a, p] = ref[ridx[p], a]
+    cand = np.empty((3, n), np.float32)   # the current block's candidates, their indices and distances
+    cand_idx = np.empty(n, np.int64)
+    cand_dist = np.empty(n, np.float32)
+    within = margin * margin * np.float32(1.0 - 1e-5) if windowed else np.float32(np.inf)
     shrink = 1.0 - 1e-5
-    # absolute float64 error of a query's distance to a cell border (its cell index and the border are
-    # computed separately): the bound is lowered by it, so a point a rounding error inside a border is safe
+    # absolute float64 error of a query's distance to a block face (its cell index and the face are computed
+    # separately): the bound is lowered by it, so a point a rounding error inside a face is safe
     slack = 8.0 * np.finfo(np.float64).eps * (max(np.abs(lo).max(), np.abs(hi).max()) + c)
+    face_lo = np.empty(3, np.float64)
+    face_hi = np.empty(3, np.float64)
+    cc3 = np.empty(3, np.int64)
     dist = np.empty(k, np.float32)
     pos = np.empty(k, np.int64)
-    qc = np.empty(3, np.int64)
-    for qi in range(q):
-        for a in range(3):
-            qc[a] = min(max(int((query[qi, a] - lo[a]) / c), 0), dims[a] - 1)
-        count = 0
-        r = 0
-        while True:
-            for ix in range(max(qc[0] - r, 0), min(qc[0] + r, dims[0] - 1) + 1):   # the shell of ring r
-                on_x = abs(ix - qc[0]) == r
-                for iy in range(max(qc[1] - r, 0), min(qc[1] + r, dims[1] - 1) + 1):
-                    on_xy = on_x or abs(iy - qc[1]) == r
-                    for iz in range(max(qc[2] - r, 0), min(qc[2] + r, dims[2] - 1) + 1):
-                        if not (on_xy or abs(iz - qc[2]) == r):
-                            continue
-                        cc = (ix * dims[1] + iy) * dims[2] + iz
-                        for p in range(start[cc], start[cc + 1]):
-                            j = ridx[p]
-                            if exclude_self and j == qi:
-                                continue
-                            d = _sq(query, qi, rs, p)
-                            if count < k or d < dist[k - 1]:
-                                count = _insert(dist, pos, count, k, d, j)
-            # every point outside the searched cells is at least `bound` away (inf: the whole grid searched)
+    for cc in range(cells):
+        if qstart[cc] == qstart[cc + 1]:
+            continue
+        cc3[0], cc3[1], cc3[2] = cc // (dims[1] * dims[2]), (cc // dims[2]) % dims[1], cc % dims[2]
+        for a in range(3):   # the block's faces; none (inf) where it reaches the grid's edge
+            face_lo[a] = lo[a] + (cc3[a] - 1) * c if cc3[a] > 0 else -np.inf
+            face_hi[a] = lo[a] + (cc3[a] + 2) * c if cc3[a] < dims[a] - 1 else np.inf
+        m = 0
+        for p in range(start[cc], start[cc + 1]):
+            for a in range(3):
+                cand[a, m] = rs[a, p]
+            cand_idx[m] = ridx[p]
+            m += 1
+        for jx in range(max(cc3[0] - 1, 0), min(cc3[0] + 1, dims[0] - 1) + 1):
+            for jy in range(max(cc3[1] - 1, 0), min(cc3[1] + 1, dims[1] - 1) + 1):
+                row = (jx * dims[1] + jy) * dims[2]   # the block's cells along z are consecutive
+                for p in range(start[row + max(cc3[2] - 1, 0)], start[row + min(cc3[2] + 1, dims[2] - 1) + 1]):
+                    if start[cc] <= p < start[cc + 1]:
+                        continue   # the own cell, taken first
+                    for a in range(3):
+                        cand[a, m] = rs[a, p]
+                    cand_idx[m] = ridx[p]
+                    m += 1
+        for t in range(qstart[cc], qstart[cc + 1]):
+            qi = qidx[t]
+            x, y, z = query[qi, 0], query[qi, 1], query[qi, 2]
+            for p in range(m):
+                dx = x - cand[0, p]
+                dy = y - cand[1, p]
+                dz = z - cand[2, p]
+                cand_dist[p] = dx * dx + dy * dy + dz * dz
+            count = 0
+            worst = _INF
+            for p in range(m):
+                d = cand_dist[p]
+                if d < worst and not (exclude_self and cand_idx[p] == qi):
+                    count = _insert(dist, pos, count, k, d, cand_idx[p])
+                    if count == k:
+                        worst = dist[k - 1]
+            # every ref point outside the block is at least `bound` away (inf: the block is the whole grid)
             bound = np.inf
             for a in range(3):
-                if qc[a] - r > 0:
-                    bound = min(bound, query[qi, a] - (lo[a] + (qc[a] - r) * c))
-                if qc[a] + r < dims[a] - 1:
-                    bound = min(bound, lo[a] + (qc[a] + r + 1) * c - query[qi, a])
+                bound = min(bound, query[qi, a] - face_lo[a], face_hi[a] - query[qi, a])
             bound = max(bound - slack, 0.0)
-            reach = bound * bound * shrink
-            if count == k and dist[k - 1] <= reach:
-                if dist[k - 1] <= within:
-                    done[qi] = True
-                    for s in range(k):
-                        out_dist[qi, s] = dist[s]
-                        out_idx[qi, s] = pos[s]
-                break
-            if reach >= within:   # the k-th nearest is beyond the margin: the window search decides
-                break
-            r += 1
+            if count == k and dist[k - 1] <= bound * bound * shrink and dist[k - 1] <= within:
+                done[qi] = True
+                for s in range(k):
+                    out_dist[qi, s] = dist[s]
+                    out_idx[qi, s] = pos[s]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -342,8 +363,8 @@ def knn(query: np.ndarray, ref: np.ndarray, k: int, margin: float, block: int, w
     `windowed`: only ref points whose x lies within `margin` of the x-range of the query's block of
     `block` x-sorted queries; else every ref point. `exclude_self` (query is ref): the point itself is
     skipped. Slots without a candidate hold distance inf and the ref point at the window's start.
-    `cell` > 0 (windowed only): a grid search with cells of that size first (faster for dense clouds such
-    as the kNN graph over P_g; the same result up to the order of exact ties).
+    `cell` > 0: a grid search with cells of that size first (`_grid_knn_cloud`; faster for dense clouds such
+    as the kNN graph over P_g; the same result up to the order of exact ties), the scan for the rest.
     """
     b, q = query.shape[0], query.shape[1]
     out_dist = np.empty((b, q, k), np.float32)
@@ -351,7 +372,7 @@ def knn(query: np.ndarray, ref: np.ndarray, k: int, margin: float, block: int, w
     m32 = np.float32(margin)
     for c in range(b):
         done = np.zeros(q, np.bool_)
-        if windowed and cell > 0 and k > 0:
-            _grid_knn_cloud(query[c], ref[c], k, m32, cell, exclude_self, done, out_dist[c], out_idx[c])
+        if cell > 0 and k > 0:
+            _grid_knn_cloud(query[c], ref[c], k, m32, cell, exclude_self, windowed, done, out_dist[c], out_idx[c])
         _knn_cloud(query[c], ref[c], k, m32, block, windowed, exclude_self, done, out_dist[c], out_idx[c])
     return out_dist, out_idx

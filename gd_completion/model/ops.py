@@ -21,8 +21,8 @@ _CHUNK_ENTRIES = 1 << 19
 # Above this many distance entries the torch FPS computes one row of distances per step.
 _FPS_DENSE_LIMIT = 1 << 22
 _COMPILED = {"enabled": True}
-# Grid cell of the kNN graph's grid search, in units of its margin (measured: 0.75 fastest on P_g).
-GRID_CELL = 0.75
+# Grid cell of the kNN graph's grid search, in units of its margin (measured: 0.9 fastest on P_g, 0.75-1.0 within 3 %).
+GRID_CELL = 0.9
 
 
 def use_compiled_kernels(enabled: bool) -> bool:
