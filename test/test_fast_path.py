@@ -10,7 +10,7 @@ from gd_completion.evaluation.baselines import published_outputs
 from gd_completion.model import chamfer_l2, farthest_point_sample, kernels
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import box_shape
-from gd_completion.model.ops import _nearest_k, knn_graph, torch_kernels, window_knn
+from gd_completion.model.ops import _nearest_k, ball_group, knn_graph, torch_kernels, window_knn
 from gd_completion.pipeline import VehicleCompleter
 from gd_completion.synth.dataset import build_dataset
 
@@ -104,6 +104,43 @@ def test_grid_search_of_the_knn_graph_matches_the_window_search(scans):
     grid = window_knn(far, far, 6, 0.08, block=32, exclude_self=True, grid=True)
     with torch_kernels():
         _same_up_to_exact_ties(far, far, grid, window_knn(far, far, 6, 0.08, block=32, exclude_self=True))
+
+
+def _ball_distances(centers: torch.Tensor, points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Squared distance (B, Q, m) of each ball slot's point to its center, in the searches' arithmetic."""
+    picked = torch.gather(points, 1, idx.reshape(idx.shape[0], -1, 1).expand(-1, -1, 3)).view(idx.shape + (3,))
+    diff = centers.unsqueeze(2) - picked
+    return diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1] + diff[..., 2] * diff[..., 2]
+
+
+def test_ball_query_kernel_matches_the_torch_ball_groups(scans):
+    """The compiled ball query (a grid for the balls, the window scan for the nearest point of empty ones) picks
+    points at exactly the distances the torch path's picks are at, slot by slot: the same indices up to exact
+    ties, in every case the model meets and where the grid cannot serve."""
+    x = torch.from_numpy(scans["partial"][:8])
+    g = torch.Generator().manual_seed(3)
+    centers = torch.cat([x, x + 0.05 * torch.randn(x.shape, generator=g), 0.6 * torch.rand(x.shape, generator=g)
+                         - 0.3], 1)   # on the scan, near it, and far from it (empty balls: padding only)
+    mirrored = torch.cat([x, x * torch.tensor([1.0, -1.0, 1.0])], 1)           # scale 1: exact duplicates, ties
+    broken = x.clone()
+    broken[0, 3] = float("nan")                                                # no grid: the scan answers
+    far = x.clone()
+    far[:, 0] = 1e30                                                           # an outlier packs the grid
+    cases = [(centers, mirrored, 0.05, True), (centers, x[:, :128], 0.1, False), (centers, x, 0.05, True),
+             (centers[:, :40], x[:, :30], 0.05, True),                         # tiny: searched whole
+             (centers, x[:, :3], 0.1, False),                                  # fewer points than m: padded
+             (centers, far, 0.05, True), (centers[:1], broken[:1], 0.05, True)]
+    for query, points, radius, window in cases:
+        fast = ball_group(query, points, radius, 4, window=window)
+        with torch_kernels():
+            reference = ball_group(query, points, radius, 4, window=window)
+        assert fast.shape == reference.shape == query.shape[:2] + (4,)
+        d_fast, d_ref = _ball_distances(query, points, fast), _ball_distances(query, points, reference)
+        finite = torch.isfinite(d_ref)
+        assert torch.equal(finite, torch.isfinite(d_fast)) and torch.equal(d_fast[finite], d_ref[finite])
+        assert (fast == reference).float().mean() > 0.5
+        inside = d_ref[finite] <= radius * radius
+        assert 0 < inside.float().mean() < 1 or len(points[0]) <= 3 or not torch.isfinite(points).all()
 
 
 def test_kernel_window_edge_cases():

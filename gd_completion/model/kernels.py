@@ -1,4 +1,4 @@
-"""Compiled CPU kernels (numba) for FPS and the x-window neighbour searches of `ops`.
+"""Compiled CPU kernels (numba) for FPS, the x-window neighbour searches of `ops` and its ball queries.
 
 `fps_pruned` is FPS that skips the leaves of points the newly chosen point cannot bring closer; it returns
 exactly what the plain scan returns and serves every finite cloud (the network input, the model's FPS, the merge).
@@ -18,6 +18,8 @@ nearest of each query whose k-th lies within the 3 x 3 x 3 cells around it; wher
 only the other queries are scanned.
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -250,20 +252,32 @@ def _knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, b
                 out_idx[qi, s] = fallback
 
 
+class _Grid(NamedTuple):
+    """A cloud's ref points bucketed on a uniform grid (`_grid`), with the queries' buckets."""
+
+    lo: np.ndarray       # (3,) float64, the grid's corner
+    cell: float          # the cell width
+    dims: np.ndarray     # (3,) int64 cells per axis, row-major (x slowest)
+    start: np.ndarray    # (cells + 1,) the ref points of cell c are ref_order[start[c]:start[c + 1]]
+    ref_order: np.ndarray
+    ref_sorted: np.ndarray   # (3, n) float32, the ref points in that order, one row per axis
+    query_start: np.ndarray
+    query_order: np.ndarray
+
+
 @numba.njit(cache=True, nogil=True)
-def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, cell: float, exclude_self: bool,
-                    windowed: bool, done: np.ndarray, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
-    """The exact k nearest ref points of each query among those in the 3 x 3 x 3 cells around its own cell of a
-    uniform grid; sets done[qi] (and the outputs) only where they are its k nearest of all (the k-th lies within
-    the block) and, `windowed`, all k lie within `margin` (the window search's result then, up to the order of
-    exact ties). The block's candidates are gathered once per cell, its own cell first (a tight k-th distance
-    early), and every query of the cell computes its distances to them in one vectorisable pass."""
+def _grid(query: np.ndarray, ref: np.ndarray, cell: float, same: bool) -> tuple[bool, _Grid]:
+    """(usable, grid) of cells at least `cell` wide over both clouds (`same`: query is ref). Not usable for an
+    empty or non-finite cloud (a non-finite point has no cell) or where a far outlier packs the points into a
+    few cells (the searches' fallbacks are cheaper then)."""
     q, n = query.shape[0], ref.shape[0]
+    lo = np.zeros(3, np.float64)
+    hi = np.zeros(3, np.float64)
+    dims = np.ones(3, np.int64)
+    empty = np.zeros(1, np.int64)
+    nothing = _Grid(lo, 1.0, dims, empty, empty, np.empty((3, 0), np.float32), empty, empty)
     if q == 0 or n == 0 or not (np.isfinite(query).all() and np.isfinite(ref).all()):
-        return   # nothing to grid (a non-finite point has no cell): the window search answers every query
-    lo = np.empty(3, np.float64)
-    hi = np.empty(3, np.float64)
-    dims = np.empty(3, np.int64)
+        return False, nothing
     for a in range(3):
         lo[a] = min(query[:, a].min(), ref[:, a].min())
         hi[a] = max(query[:, a].max(), ref[:, a].max())
@@ -280,17 +294,69 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
         dims[a] = int((hi[a] - lo[a]) / c) + 1
         cells *= dims[a]
     width = np.full(3, c)
-    start, ridx = bucket_points(ref, lo, width, dims)   # the ref points sorted by cell
+    start, ridx = bucket_points(ref, lo, width, dims)
     pairs = 0   # point pairs sharing a cell: the grid's work grows with it
     for i in range(cells):
         pairs += (start[i + 1] - start[i]) ** 2
     if pairs > 64 * (n + q):
-        return   # a far outlier packed the cloud into a few cells: the window search is cheaper
-    qstart, qidx = (start, ridx) if exclude_self else bucket_points(query, lo, width, dims)
-    rs = np.empty((3, n), np.float32)   # the ref points in cell order, one row per axis
+        return False, nothing
+    qstart, qidx = (start, ridx) if same else bucket_points(query, lo, width, dims)
+    rs = np.empty((3, n), np.float32)
     for p in range(n):
         for a in range(3):
             rs[a, p] = ref[ridx[p], a]
+    return True, _Grid(lo, c, dims, start, ridx, rs, qstart, qidx)
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_candidates(g: _Grid, cc: int, cc3: np.ndarray, cand: np.ndarray, cand_idx: np.ndarray) -> int:
+    """Gathers the ref points of the 3 x 3 x 3 cells around cell `cc` (row-major; `cc3` its cell per axis) into
+    `cand` (3, n) and their indices into `cand_idx`, the cell's own points first; returns their number."""
+    m = 0
+    for p in range(g.start[cc], g.start[cc + 1]):
+        for a in range(3):
+            cand[a, m] = g.ref_sorted[a, p]
+        cand_idx[m] = g.ref_order[p]
+        m += 1
+    for jx in range(max(cc3[0] - 1, 0), min(cc3[0] + 1, g.dims[0] - 1) + 1):
+        for jy in range(max(cc3[1] - 1, 0), min(cc3[1] + 1, g.dims[1] - 1) + 1):
+            row = (jx * g.dims[1] + jy) * g.dims[2]   # the block's cells along z are consecutive
+            for p in range(g.start[row + max(cc3[2] - 1, 0)], g.start[row + min(cc3[2] + 1, g.dims[2] - 1) + 1]):
+                if g.start[cc] <= p < g.start[cc + 1]:
+                    continue   # the own cell, taken first
+                for a in range(3):
+                    cand[a, m] = g.ref_sorted[a, p]
+                cand_idx[m] = g.ref_order[p]
+                m += 1
+    return m
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _distances(x: np.float32, y: np.float32, z: np.float32, cand: np.ndarray, m: int, out: np.ndarray) -> None:
+    for p in range(m):   # one vectorisable pass
+        dx = x - cand[0, p]
+        dy = y - cand[1, p]
+        dz = z - cand[2, p]
+        out[p] = dx * dx + dy * dy + dz * dz
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _cell_of(g: _Grid, cc: int, cc3: np.ndarray) -> None:
+    cc3[0], cc3[1], cc3[2] = cc // (g.dims[1] * g.dims[2]), (cc // g.dims[2]) % g.dims[1], cc % g.dims[2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, cell: float, exclude_self: bool,
+                    windowed: bool, done: np.ndarray, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
+    """The exact k nearest ref points of each query among those in the 3 x 3 x 3 cells around its own cell of a
+    uniform grid; sets done[qi] (and the outputs) only where they are its k nearest of all (the k-th lies within
+    the block) and, `windowed`, all k lie within `margin` (the window search's result then, up to the order of
+    exact ties). The block's candidates are gathered once per cell, its own cell first (a tight k-th distance
+    early), and every query of the cell computes its distances to them in one vectorisable pass."""
+    usable, g = _grid(query, ref, cell, exclude_self)
+    if not usable:
+        return   # the window search answers every query
+    n = ref.shape[0]
     cand = np.empty((3, n), np.float32)   # the current block's candidates, their indices and distances
     cand_idx = np.empty(n, np.int64)
     cand_dist = np.empty(n, np.float32)
@@ -298,43 +364,24 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
     shrink = 1.0 - 1e-5
     # absolute float64 error of a query's distance to a block face (its cell index and the face are computed
     # separately): the bound is lowered by it, so a point a rounding error inside a face is safe
-    slack = 8.0 * np.finfo(np.float64).eps * (max(np.abs(lo).max(), np.abs(hi).max()) + c)
+    slack = 8.0 * np.finfo(np.float64).eps * (max(np.abs(g.lo).max(), np.abs(g.lo + g.dims * g.cell).max())
+                                              + g.cell)
     face_lo = np.empty(3, np.float64)
     face_hi = np.empty(3, np.float64)
     cc3 = np.empty(3, np.int64)
     dist = np.empty(k, np.float32)
     pos = np.empty(k, np.int64)
-    for cc in range(cells):
-        if qstart[cc] == qstart[cc + 1]:
+    for cc in range(len(g.query_start) - 1):
+        if g.query_start[cc] == g.query_start[cc + 1]:
             continue
-        cc3[0], cc3[1], cc3[2] = cc // (dims[1] * dims[2]), (cc // dims[2]) % dims[1], cc % dims[2]
+        _cell_of(g, cc, cc3)
         for a in range(3):   # the block's faces; none (inf) where it reaches the grid's edge
-            face_lo[a] = lo[a] + (cc3[a] - 1) * c if cc3[a] > 0 else -np.inf
-            face_hi[a] = lo[a] + (cc3[a] + 2) * c if cc3[a] < dims[a] - 1 else np.inf
-        m = 0
-        for p in range(start[cc], start[cc + 1]):
-            for a in range(3):
-                cand[a, m] = rs[a, p]
-            cand_idx[m] = ridx[p]
-            m += 1
-        for jx in range(max(cc3[0] - 1, 0), min(cc3[0] + 1, dims[0] - 1) + 1):
-            for jy in range(max(cc3[1] - 1, 0), min(cc3[1] + 1, dims[1] - 1) + 1):
-                row = (jx * dims[1] + jy) * dims[2]   # the block's cells along z are consecutive
-                for p in range(start[row + max(cc3[2] - 1, 0)], start[row + min(cc3[2] + 1, dims[2] - 1) + 1]):
-                    if start[cc] <= p < start[cc + 1]:
-                        continue   # the own cell, taken first
-                    for a in range(3):
-                        cand[a, m] = rs[a, p]
-                    cand_idx[m] = ridx[p]
-                    m += 1
-        for t in range(qstart[cc], qstart[cc + 1]):
-            qi = qidx[t]
-            x, y, z = query[qi, 0], query[qi, 1], query[qi, 2]
-            for p in range(m):
-                dx = x - cand[0, p]
-                dy = y - cand[1, p]
-                dz = z - cand[2, p]
-                cand_dist[p] = dx * dx + dy * dy + dz * dz
+            face_lo[a] = g.lo[a] + (cc3[a] - 1) * g.cell if cc3[a] > 0 else -np.inf
+            face_hi[a] = g.lo[a] + (cc3[a] + 2) * g.cell if cc3[a] < g.dims[a] - 1 else np.inf
+        m = _block_candidates(g, cc, cc3, cand, cand_idx)
+        for t in range(g.query_start[cc], g.query_start[cc + 1]):
+            qi = g.query_order[t]
+            _distances(query[qi, 0], query[qi, 1], query[qi, 2], cand, m, cand_dist)
             count = 0
             worst = _INF
             for p in range(m):
@@ -353,6 +400,43 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
                 for s in range(k):
                     out_dist[qi, s] = dist[s]
                     out_idx[qi, s] = pos[s]
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_ball_cloud(query: np.ndarray, ref: np.ndarray, m: int, radius: float, done: np.ndarray,
+                     out: np.ndarray) -> bool:
+    """For each query with a ref point within `radius`: the up to m nearest of those, ascending, then the nearest
+    repeated, in out (Q, m); sets done there. Cells of `radius` (plus room for rounding), so a query's 3 x 3 x 3
+    block holds its whole ball. False (nothing done) where the cloud cannot be gridded."""
+    usable, g = _grid(query, ref, radius * (1.0 + 1e-4), False)
+    if not usable:
+        return False
+    n = ref.shape[0]
+    r2 = np.float32(radius * radius)   # as torch compares a float32 tensor with a Python float
+    cand = np.empty((3, n), np.float32)
+    cand_idx = np.empty(n, np.int64)
+    cand_dist = np.empty(n, np.float32)
+    cc3 = np.empty(3, np.int64)
+    dist = np.empty(m, np.float32)
+    pos = np.empty(m, np.int64)
+    for cc in range(len(g.query_start) - 1):
+        if g.query_start[cc] == g.query_start[cc + 1]:
+            continue
+        _cell_of(g, cc, cc3)
+        count_cand = _block_candidates(g, cc, cc3, cand, cand_idx)
+        for t in range(g.query_start[cc], g.query_start[cc + 1]):
+            qi = g.query_order[t]
+            _distances(query[qi, 0], query[qi, 1], query[qi, 2], cand, count_cand, cand_dist)
+            count = 0
+            for p in range(count_cand):
+                d = cand_dist[p]
+                if d <= r2 and (count < m or d < dist[m - 1]):
+                    count = _insert(dist, pos, count, m, d, cand_idx[p])
+            if count > 0:
+                done[qi] = True
+                for s in range(m):
+                    out[qi, s] = pos[s] if s < count else pos[0]
+    return True
 
 
 @numba.njit(cache=True, nogil=True)
@@ -376,3 +460,32 @@ def knn(query: np.ndarray, ref: np.ndarray, k: int, margin: float, block: int, w
             _grid_knn_cloud(query[c], ref[c], k, m32, cell, exclude_self, windowed, done, out_dist[c], out_idx[c])
         _knn_cloud(query[c], ref[c], k, m32, block, windowed, exclude_self, done, out_dist[c], out_idx[c])
     return out_dist, out_idx
+
+
+@numba.njit(cache=True, nogil=True)
+def ball_query(query: np.ndarray, ref: np.ndarray, m: int, radius: float, block: int, windowed: bool) -> np.ndarray:
+    """Indices (B, Q, m) of the m nearest ref points within `radius` of every query, ascending, the slots beyond
+    them holding the nearest ref point (PointNet++ padding); m <= the number of ref points. The nearest of a query
+    without any within `radius` is sought like `knn`'s (`windowed`: in the x-window of margin `radius` of its
+    block of `block` x-sorted queries). The same indices as `ops.ball_group` over `knn`'s result up to the order
+    of exact ties: a grid finds every query's ball and the scan only the nearest point of the others."""
+    b, q = query.shape[0], query.shape[1]
+    out = np.empty((b, q, m), np.int64)
+    if m == 0 or ref.shape[1] == 0:
+        return out
+    r2 = np.float32(radius * radius)
+    m32 = np.float32(radius)
+    for c in range(b):
+        done = np.zeros(q, np.bool_)
+        if m > 0 and _grid_ball_cloud(query[c], ref[c], m, radius, done, out[c]):
+            k = 1   # only the nearest is left to find
+        else:
+            k = m   # no grid: every query's m nearest, as `knn`
+        dist = np.empty((q, k), np.float32)
+        idx = np.empty((q, k), np.int64)
+        _knn_cloud(query[c], ref[c], k, m32, block, windowed, False, done, dist, idx)
+        for qi in range(q):
+            if not done[qi]:
+                for s in range(m):
+                    out[c, qi, s] = idx[qi, s] if s < k and not dist[qi, s] > r2 else idx[qi, 0]
+    return out

@@ -23,6 +23,8 @@ _FPS_DENSE_LIMIT = 1 << 22
 _COMPILED = {"enabled": True}
 # Grid cell of the kNN graph's grid search, in units of its margin (measured: 0.9 fastest on P_g, 0.75-1.0 within 3 %).
 GRID_CELL = 0.9
+# Queries per x-window of the windowed ball queries.
+BALL_BLOCK = 32
 
 
 def use_compiled_kernels(enabled: bool) -> bool:
@@ -166,11 +168,18 @@ def ball_group(centers: Tensor, points: Tensor, radius: float, m: int, window: b
     `radius` (`window_knn`; exact inside the ball); else over all points."""
     b, q, _ = centers.shape
     mm = min(m, points.shape[1])
-    if window:
-        dist, nn = window_knn(centers, points, mm, radius, block=32)
+    if _compiled(centers):   # the same indices up to the order of exact ties, faster
+        from . import kernels
+        windowed = window and not _tiny(q, points.shape[1], BALL_BLOCK)
+        with torch.no_grad():
+            idx = torch.from_numpy(kernels.ball_query(_as_numpy(centers), _as_numpy(points), mm, float(radius),
+                                                      BALL_BLOCK, windowed))
     else:
-        dist, nn = _nearest_k(centers, points, mm, None, 0, exclude_self=False)
-    idx = torch.where(dist > radius * radius, nn[..., :1], nn)
+        if window:
+            dist, nn = window_knn(centers, points, mm, radius, block=BALL_BLOCK)
+        else:
+            dist, nn = _nearest_k(centers, points, mm, None, 0, exclude_self=False)
+        idx = torch.where(dist > radius * radius, nn[..., :1], nn)
     if mm < m:
         idx = torch.cat([idx, idx[..., :1].expand(b, q, m - mm)], -1)
     return idx
@@ -211,9 +220,13 @@ def window_knn(query: Tensor, ref: Tensor, k: int, margin: float, block: int = 6
     """
     q, n = query.shape[1], ref.shape[1]
     kk = min(k, n - 1 if exclude_self else n)
-    tiny = q * n <= 4 * block * block or n <= 2 * block
-    return _nearest_k(query, ref, kk, None if tiny else margin, block, exclude_self,
+    return _nearest_k(query, ref, kk, None if _tiny(q, n, block) else margin, block, exclude_self,
                       cell=GRID_CELL * margin if grid else 0.0)
+
+
+def _tiny(q: int, n: int, block: int) -> bool:
+    """Whether `window_knn` searches q queries over n ref points whole instead of by windows."""
+    return q * n <= 4 * block * block or n <= 2 * block
 
 
 def _nearest_k(query: Tensor, ref: Tensor, k: int, margin: float | None, block: int,
