@@ -302,3 +302,29 @@ def test_refiner_weights_are_their_recipe_on_its_frozen_base(weights, recipe_nam
                                    refiner_hidden=settings.hidden)
     state = model.state_dict()
     assert all(torch.equal(state[k], v) for k, v in base.state_dict().items())
+
+
+def test_inference_folds_the_refiner_batch_norms_into_its_point_layers():
+    """Under inference mode in eval the refiner's BN is folded into each Conv1d: the same vector as the modules
+    give, for a batch and for one cloud, with the current running statistics after a training step."""
+    torch.manual_seed(0)
+    refiner = with_refiner(GGDNet(TINY)).refiner
+    for module in refiner.points:
+        if isinstance(module, torch.nn.BatchNorm1d):
+            torch.nn.init.normal_(module.running_mean)
+            torch.nn.init.uniform_(module.running_var, 0.5, 2.0)
+            torch.nn.init.normal_(module.weight)
+    torch.nn.init.normal_(refiner.out.weight, std=0.5)   # a refiner that says something
+    partial, shape = torch.rand(3, 64, 3) - 0.5, box_shape([[4.5, 1.8, 1.5], [5.0, 2.0, 1.8], [12.0, 2.5, 3.5]])
+    for _ in range(2):
+        refiner.eval()
+        with torch.no_grad():
+            modules = refiner.vector(partial, shape)
+        with torch.inference_mode():
+            folded, one = refiner.vector(partial, shape), refiner.vector(partial[1:2], shape[1:2])
+        assert refiner._fold.cached is not None and modules.abs().max() > 1e-3
+        torch.testing.assert_close(folded, modules, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(one, modules[1:2], rtol=1e-5, atol=1e-6)
+        refiner.train()   # moves the running statistics in place: the fold must follow
+        refiner.vector(partial + 1.0, shape)
+        assert refiner._fold.cached is None

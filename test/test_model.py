@@ -366,7 +366,8 @@ def test_eval_linear_bn_folds_the_current_parameters():
     layer.eval()
     first = inferred()
     torch.testing.assert_close(first, unfolded())
-    assert layer._fold is not None and not any(t.requires_grad or t.is_inference() for t in layer._fold[1:])
+    folded = layer._fold.cached
+    assert folded is not None and not any(t.requires_grad or t.is_inference() for t in folded)
     copy.deepcopy(layer)                                                      # a cached fold is a plain tensor
     with torch.no_grad():
         layer.load_state_dict({k: v + 0.5 for k, v in layer.state_dict().items()})   # in-place copies

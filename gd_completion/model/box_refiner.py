@@ -13,6 +13,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from .folding import FoldCache, fold_bn
+
 # Typical magnitude of each regressed value (centre x, y, z in box lengths; yaw in rad; log size factors):
 # the network predicts them in these units, so every output starts near 0 (the identity) and weighs alike.
 FRAME_UNITS = (0.04, 0.04, 0.015, 0.08, 0.06, 0.06, 0.06)
@@ -97,10 +99,27 @@ class BoxRefiner(nn.Module):
         self.head = nn.Sequential(*head)
         self.register_buffer("units", torch.tensor(FRAME_UNITS))
         self.register_buffer("limits", torch.tensor(FRAME_LIMITS), persistent=False)
+        self._fold = FoldCache()   # ((bias, weight^T) per point layer)
+
+    def _point_code(self, partial: Tensor) -> Tensor:
+        """(B, C) max-pooled point features; under inference mode in eval with each BN folded into its Conv1d
+        (cached, like `LinearBN`), one GEMM per layer."""
+        if self.training or not torch.is_inference_mode_enabled():
+            self._fold.clear()   # training moves the running statistics in place
+            return self.points(partial.transpose(1, 2)).amax(2)
+        layers = [(self.points[i], self.points[i + 1]) for i in range(0, len(self.points), 3)]
+        folded = self._fold.get([t for conv, bn in layers for t in (conv.weight, conv.bias, bn.weight, bn.bias,
+                                                                       bn.running_mean, bn.running_var)],
+                                lambda: [fold_bn(conv.weight[:, :, 0], conv.bias, bn) for conv, bn in layers])
+        b, n, _ = partial.shape
+        h = partial.reshape(b * n, 3)
+        for bias, weight_t in folded:
+            h = torch.relu_(torch.addmm(bias, h, weight_t))
+        return h.view(b, n, -1).amax(1)
 
     def vector(self, partial: Tensor, shape: Tensor) -> Tensor:
         """(B, 7) `BoxFrame` vector of `partial` (B, N, 3) in the given box's frame with its `shape` (B, 2)."""
-        code = self.points(partial.transpose(1, 2)).amax(2)
+        code = self._point_code(partial)
         vector = self.out(self.head(torch.cat([code, shape], 1))) * self.units
         return torch.maximum(torch.minimum(vector, self.limits), -self.limits)
 

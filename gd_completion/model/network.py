@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from .box_refiner import BoxFrame, BoxRefiner, from_frame, refined_shape, to_frame
 from .config import GGDConfig
+from .folding import FoldCache, fold_bn
 from .ops import ball_group, farthest_point_sample, flat_index, gather_points, knn_graph, neighbour_mean
 
 
@@ -35,10 +36,10 @@ class GGDOutput(NamedTuple):
 class LinearBN(nn.Module):
     """Point-wise Linear + BatchNorm + ReLU on (..., C); in eval mode BN is folded into the Linear.
 
-    Under `torch.inference_mode` (the pipeline, the evaluation) the folded weights are cached until a
-    training-mode forward or an in-place change of a parameter or buffer (its version counter): the same values
-    as folding every call. In-place changes through `.data` (its own version counter) are not seen there; fold
-    anew with `clear_fold()`. Outside inference mode every call folds (autograd reaches the parameters).
+    Under `torch.inference_mode` (the pipeline, the evaluation) the folded weights are cached (`FoldCache`)
+    until a training-mode forward or an in-place change of a parameter or buffer: the same values as folding
+    every call; after in-place changes through `.data`, fold anew with `clear_fold()`. Outside inference mode
+    every call folds (autograd reaches the parameters).
     """
 
     def __init__(self, cin: int, cout: int, relu: bool = True) -> None:
@@ -46,33 +47,25 @@ class LinearBN(nn.Module):
         self.linear = nn.Linear(cin, cout, bias=False)
         self.bn = nn.BatchNorm1d(cout)
         self.relu = relu
-        self._fold: tuple[tuple, Tensor, Tensor] | None = None   # (key, bias, weight^T): one attribute, thread-safe
+        self._fold = FoldCache()   # (bias, weight^T)
 
     def clear_fold(self) -> None:
         """Drop the cached folded weights."""
-        self._fold = None
-
-    def _fold_now(self) -> tuple[Tensor, Tensor]:
-        scale = self.bn.weight * torch.rsqrt(self.bn.running_var + self.bn.eps)
-        return self.bn.bias - self.bn.running_mean * scale, (self.linear.weight * scale[:, None]).t()
+        self._fold.clear()
 
     def _folded(self) -> tuple[Tensor, Tensor]:
+        def fold() -> tuple[Tensor, Tensor]:
+            return fold_bn(self.linear.weight, None, self.bn)
         if not torch.is_inference_mode_enabled():
-            return self._fold_now()
-        sources = (self.linear.weight, self.bn.weight, self.bn.bias, self.bn.running_mean, self.bn.running_var)
-        key = tuple((t.data_ptr(), t._version, t.dtype, t.device) for t in sources)
-        fold = self._fold
-        if fold is None or fold[0] != key:
-            with torch.inference_mode(False), torch.no_grad():   # plain tensors without a graph
-                fold = (key, *self._fold_now())
-            self._fold = fold
-        return fold[1], fold[2]
+            return fold()
+        return self._fold.get((self.linear.weight, self.bn.weight, self.bn.bias, self.bn.running_mean,
+                               self.bn.running_var), fold)
 
     def forward(self, x: Tensor) -> Tensor:
         shape = x.shape
         x2 = x.reshape(-1, shape[-1])
         if self.training:   # moves the running statistics (in place, without a version bump): refold in eval
-            self._fold = None
+            self._fold.clear()
             y = self.bn(self.linear(x2))
         else:
             bias, weight_t = self._folded()

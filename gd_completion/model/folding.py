@@ -1,0 +1,47 @@
+"""Batch norm folded into the linear map before it, for inference, and the cache that holds the folded weights."""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+
+def fold_bn(weight: Tensor, bias: Tensor | None, bn: nn.BatchNorm1d) -> tuple[Tensor, Tensor]:
+    """(bias, weight^T) of the affine map x -> bn(x W^T + bias) in eval mode; `weight` (out, in)."""
+    scale = bn.weight * torch.rsqrt(bn.running_var + bn.eps)
+    shift = bn.bias - bn.running_mean * scale
+    if bias is not None:
+        shift = shift + bias * scale
+    return shift, (weight * scale[:, None]).t()
+
+
+class FoldCache:
+    """A value computed from some tensors, kept until one of them changes: another tensor, an in-place change
+    (its version counter), dtype or device. In-place changes through `.data` (its own version counter) are not
+    seen: `clear()` then. One attribute holds key and value, so threads sharing a module read a consistent pair."""
+
+    def __init__(self) -> None:
+        self._entry: tuple[tuple, Any] | None = None
+
+    def clear(self) -> None:
+        """Drop the cached value."""
+        self._entry = None
+
+    @property
+    def cached(self) -> Any:
+        """The cached value, None when there is none."""
+        entry = self._entry
+        return None if entry is None else entry[1]
+
+    def get(self, sources: Sequence[Tensor], compute: Callable[[], Any]) -> Any:
+        """The cached value if `sources` are unchanged since it was computed, else `compute()` (as plain tensors:
+        without autograd, outside inference mode), cached."""
+        key = tuple((t.data_ptr(), t._version, t.dtype, t.device) for t in sources)
+        entry = self._entry
+        if entry is None or entry[0] != key:
+            with torch.inference_mode(False), torch.no_grad():
+                entry = (key, compute())
+            self._entry = entry
+        return entry[1]
