@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -63,6 +64,31 @@ def pandaset_frame(index: int) -> KittiFrame:
     return KittiFrame(f"pandaset-{index:02d}", points, frame.boxes)
 
 
+def offline(frame: KittiFrame, args: argparse.Namespace) -> None:
+    """ms per frame of `VehicleCompleter.complete_frame` on `frame` (min / median of R, after one warm-up): the
+    node's processing without transport, publisher or subscriber sharing the cores."""
+    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+    from gd_completion.pipeline import VehicleCompleter, default_threads
+
+    threads = args.num_threads or default_threads()
+    completer = VehicleCompleter(load_model(args.model or DEFAULT_WEIGHTS, device=args.device), threads=threads,
+                                 measured_merge=not args.no_measured_merge)
+    try:
+        completer.complete_frame(frame.points[:, :3], frame.boxes)
+        times, completed = [], 0
+        for _ in range(args.offline):
+            start = time.perf_counter()
+            done = completer.complete_frame(frame.points[:, :3], frame.boxes)
+            times.append(1e3 * (time.perf_counter() - start))
+            completed = done.stats.completed
+    finally:
+        completer.close()
+    print(f"frame {frame.index}: {len(frame.points)} points, {len(frame.boxes)} boxes, {completed} vehicles completed; "
+          f"complete_frame in this process, {threads} vehicle thread(s), measured_merge {not args.no_measured_merge}: "
+          f"{min(times):.0f} ms min, {statistics.median(times):.0f} ms median of {len(times)} "
+          f"({statistics.median(times) / max(completed, 1):.1f} ms per vehicle)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0)
@@ -75,9 +101,15 @@ def main() -> None:
     ap.add_argument("--fresh-frame-age", type=float, default=None,
                     help="node parameter fresh_frame_age (default: the node's default)")
     ap.add_argument("--model", default="", help="node parameter model_path (default: the shipped weights)")
+    ap.add_argument("--offline", type=int, default=0, metavar="R",
+                    help="instead: time the node's core (VehicleCompleter.complete_frame, the node's defaults) on the "
+                         "same frame R times in this process, without ROS")
     args = ap.parse_args()
 
     frame = busy_frame(args.vehicles) if args.pandaset is None else pandaset_frame(args.pandaset)
+    if args.offline:
+        offline(frame, args)
+        return
     params = {"num_threads": str(args.num_threads), "boxes_type": "marker", "device": args.device,
               "measured_merge": "false" if args.no_measured_merge else "true",
               **({"model_path": str(Path(args.model).resolve())} if args.model else {}),
