@@ -340,27 +340,20 @@ def _distances(x: np.float32, y: np.float32, z: np.float32, cand: np.ndarray, m:
         out[p] = dx * dx + dy * dy + dz * dz
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _cell_of(g: _Grid, cc: int, cc3: np.ndarray) -> None:
-    cc3[0], cc3[1], cc3[2] = cc // (g.dims[1] * g.dims[2]), (cc // g.dims[2]) % g.dims[1], cc % g.dims[2]
-
-
 @numba.njit(cache=True, nogil=True)
-def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, cell: float, exclude_self: bool,
-                    windowed: bool, done: np.ndarray, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
-    """The exact k nearest ref points of each query among those in the 3 x 3 x 3 cells around its own cell of a
-    uniform grid; sets done[qi] (and the outputs) only where they are its k nearest of all (the k-th lies within
-    the block) and, `windowed`, all k lie within `margin` (the window search's result then, up to the order of
-    exact ties). The block's candidates are gathered once per cell, its own cell first (a tight k-th distance
-    early), and every query of the cell computes its distances to them in one vectorisable pass."""
-    usable, g = _grid(query, ref, cell, exclude_self)
-    if not usable:
-        return   # the window search answers every query
-    n = ref.shape[0]
+def _grid_block_search(query: np.ndarray, g: _Grid, k: int, limit: np.float32, exclude_self: bool, ball: bool,
+                       within: np.float32, done: np.ndarray, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
+    """The k nearest ref points within squared distance `limit` of each query among those in the 3 x 3 x 3 cells
+    around its own cell. The block's candidates are gathered once per cell, its own cell first (a tight k-th
+    distance early), and every query of the cell computes its distances to them in one vectorisable pass.
+
+    `ball`: done where at least one was found (the caller's cells hold the whole ball of `limit`); out_idx gets
+    them, ascending, then the nearest repeated. Else: done where they are its k nearest of all (the k-th lies
+    within the block) and within `within`; out_dist and out_idx get them."""
+    n = g.ref_order.shape[0]
     cand = np.empty((3, n), np.float32)   # the current block's candidates, their indices and distances
     cand_idx = np.empty(n, np.int64)
     cand_dist = np.empty(n, np.float32)
-    within = margin * margin * np.float32(1.0 - 1e-5) if windowed else np.float32(np.inf)
     shrink = 1.0 - 1e-5
     # absolute float64 error of a query's distance to a block face (its cell index and the face are computed
     # separately): the bound is lowered by it, so a point a rounding error inside a face is safe
@@ -374,7 +367,7 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
     for cc in range(len(g.query_start) - 1):
         if g.query_start[cc] == g.query_start[cc + 1]:
             continue
-        _cell_of(g, cc, cc3)
+        cc3[0], cc3[1], cc3[2] = cc // (g.dims[1] * g.dims[2]), (cc // g.dims[2]) % g.dims[1], cc % g.dims[2]
         for a in range(3):   # the block's faces; none (inf) where it reaches the grid's edge
             face_lo[a] = g.lo[a] + (cc3[a] - 1) * g.cell if cc3[a] > 0 else -np.inf
             face_hi[a] = g.lo[a] + (cc3[a] + 2) * g.cell if cc3[a] < g.dims[a] - 1 else np.inf
@@ -386,10 +379,16 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
             worst = _INF
             for p in range(m):
                 d = cand_dist[p]
-                if d < worst and not (exclude_self and cand_idx[p] == qi):
+                if d < worst and d <= limit and not (exclude_self and cand_idx[p] == qi):
                     count = _insert(dist, pos, count, k, d, cand_idx[p])
                     if count == k:
                         worst = dist[k - 1]
+            if ball:
+                if count > 0:
+                    done[qi] = True
+                    for s in range(k):
+                        out_idx[qi, s] = pos[s] if s < count else pos[0]
+                continue
             # every ref point outside the block is at least `bound` away (inf: the block is the whole grid)
             bound = np.inf
             for a in range(3):
@@ -403,40 +402,28 @@ def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float
 
 
 @numba.njit(cache=True, nogil=True)
+def _grid_knn_cloud(query: np.ndarray, ref: np.ndarray, k: int, margin: np.float32, cell: float, exclude_self: bool,
+                    windowed: bool, done: np.ndarray, out_dist: np.ndarray, out_idx: np.ndarray) -> None:
+    """The exact k nearest ref points of each query where the grid search finds them (`_grid_block_search`): sets
+    done[qi] (and the outputs) only where they are its k nearest of all and, `windowed`, all k lie within `margin`
+    (the window search's result then, up to the order of exact ties)."""
+    usable, g = _grid(query, ref, cell, exclude_self)
+    if usable:   # else the window search answers every query
+        within = margin * margin * np.float32(1.0 - 1e-5) if windowed else _INF
+        _grid_block_search(query, g, k, _INF, exclude_self, False, within, done, out_dist, out_idx)
+
+
+@numba.njit(cache=True, nogil=True)
 def _grid_ball_cloud(query: np.ndarray, ref: np.ndarray, m: int, radius: float, done: np.ndarray,
                      out: np.ndarray) -> bool:
     """For each query with a ref point within `radius`: the up to m nearest of those, ascending, then the nearest
     repeated, in out (Q, m); sets done there. Cells of `radius` (plus room for rounding), so a query's 3 x 3 x 3
     block holds its whole ball. False (nothing done) where the cloud cannot be gridded."""
     usable, g = _grid(query, ref, radius * (1.0 + 1e-4), False)
-    if not usable:
-        return False
-    n = ref.shape[0]
-    r2 = np.float32(radius * radius)   # as torch compares a float32 tensor with a Python float
-    cand = np.empty((3, n), np.float32)
-    cand_idx = np.empty(n, np.int64)
-    cand_dist = np.empty(n, np.float32)
-    cc3 = np.empty(3, np.int64)
-    dist = np.empty(m, np.float32)
-    pos = np.empty(m, np.int64)
-    for cc in range(len(g.query_start) - 1):
-        if g.query_start[cc] == g.query_start[cc + 1]:
-            continue
-        _cell_of(g, cc, cc3)
-        count_cand = _block_candidates(g, cc, cc3, cand, cand_idx)
-        for t in range(g.query_start[cc], g.query_start[cc + 1]):
-            qi = g.query_order[t]
-            _distances(query[qi, 0], query[qi, 1], query[qi, 2], cand, count_cand, cand_dist)
-            count = 0
-            for p in range(count_cand):
-                d = cand_dist[p]
-                if d <= r2 and (count < m or d < dist[m - 1]):
-                    count = _insert(dist, pos, count, m, d, cand_idx[p])
-            if count > 0:
-                done[qi] = True
-                for s in range(m):
-                    out[qi, s] = pos[s] if s < count else pos[0]
-    return True
+    if usable:
+        r2 = np.float32(radius * radius)   # as torch compares a float32 tensor with a Python float
+        _grid_block_search(query, g, m, r2, False, True, _INF, done, np.empty((0, m), np.float32), out)
+    return usable
 
 
 @numba.njit(cache=True, nogil=True)
