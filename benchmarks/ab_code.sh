@@ -13,7 +13,7 @@ rounds=${3:-3}
 cd "$(dirname "$0")/.."
 root=$(pwd)
 py="$root/.venv/bin/python"
-tmp=$(mktemp -d)
+tmp=$(mktemp -d) || exit 2
 [ -e ../shared ] && ln -s "$(realpath ../shared)" "$tmp/shared"   # the worktrees find ../shared as this checkout does
 trap 'git worktree remove --force "$tmp/a" >/dev/null 2>&1; git worktree remove --force "$tmp/b" >/dev/null 2>&1; rm -rf "$tmp"' EXIT
 git worktree add --detach "$tmp/a" "$1" >/dev/null 2>&1 || { echo "!! no such revision: $1"; exit 2; }
@@ -26,15 +26,15 @@ for round in $(seq "$rounds"); do
     case $mode in
       node)
         echo "## node, 20 vehicles, $rev, round $round"
-        (cd "$tmp/$side" && PYTHONPATH="$tmp/$side" "$py" benchmarks/bench_node.py 2>&1) \
+        (cd "$tmp/$side" && PYTHONPATH="$tmp/$side${PYTHONPATH:+:$PYTHONPATH}" "$py" benchmarks/bench_node.py 2>&1) \
           | grep -E "answered|end-to-end|processing time" || echo "!! bench_node.py failed" ;;
       frame)
         echo "## node core, 20-vehicle frame, $rev, round $round"
-        (cd "$tmp/$side" && PYTHONPATH="$tmp/$side" "$py" "$root/benchmarks/bench_node.py" --offline 20 2>&1) \
+        (cd "$tmp/$side" && PYTHONPATH="$tmp/$side${PYTHONPATH:+:$PYTHONPATH}" "$py" "$root/benchmarks/bench_node.py" --offline 20 2>&1) \
           | grep -E "^frame" || echo "!! bench_node.py --offline failed" ;;
       *)
         echo "## model, $rev, round $round"
-        (cd "$tmp/$side" && PYTHONPATH="$tmp/$side" "$py" "$root/benchmarks/bench_model.py" 2>&1) \
+        (cd "$tmp/$side" && PYTHONPATH="$tmp/$side${PYTHONPATH:+:$PYTHONPATH}" "$py" "$root/benchmarks/bench_model.py" 2>&1) \
           | grep -E "^(batch|16-vehicle)" || echo "!! bench_model.py failed" ;;
     esac
   done

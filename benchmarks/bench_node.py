@@ -22,7 +22,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "test"))
-sys.path.insert(0, str(REPO))
+sys.path.append(str(REPO))   # last: a gd_completion on PYTHONPATH (benchmarks/ab_code.sh's worktrees) comes first
 
 from kitti_frames import KittiFrame, cloud_msg, read_frame  # noqa: E402
 from ros_live import benchmark_session  # noqa: E402
@@ -67,12 +67,13 @@ def pandaset_frame(index: int) -> KittiFrame:
 def offline(frame: KittiFrame, args: argparse.Namespace) -> None:
     """ms per frame of `VehicleCompleter.complete_frame` on `frame` (min / median of R, after one warm-up): the
     node's processing without transport, publisher or subscriber sharing the cores."""
-    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
-    from gd_completion.pipeline import VehicleCompleter, default_threads
+    import gd_completion
+    from gd_completion.pipeline import VehicleCompleter
 
-    threads = args.num_threads or default_threads()
-    completer = VehicleCompleter(load_model(args.model or DEFAULT_WEIGHTS, device=args.device), threads=threads,
-                                 measured_merge=not args.no_measured_merge)
+    completer = VehicleCompleter.from_checkpoint(args.model or None, device=args.device,
+                                                 num_threads=args.num_threads or None,
+                                                 measured_merge=not args.no_measured_merge)
+    threads = completer.threads
     try:
         completer.complete_frame(frame.points[:, :3], frame.boxes)
         times, completed = [], 0
@@ -84,7 +85,8 @@ def offline(frame: KittiFrame, args: argparse.Namespace) -> None:
     finally:
         completer.close()
     print(f"frame {frame.index}: {len(frame.points)} points, {len(frame.boxes)} boxes, {completed} vehicles completed; "
-          f"complete_frame in this process, {threads} vehicle thread(s), measured_merge {not args.no_measured_merge}: "
+          f"complete_frame in this process ({Path(gd_completion.__file__).parent}), {threads} vehicle thread(s), "
+          f"measured_merge {not args.no_measured_merge}: "
           f"{min(times):.0f} ms min, {statistics.median(times):.0f} ms median of {len(times)} "
           f"({statistics.median(times) / max(completed, 1):.1f} ms per vehicle)")
 

@@ -88,6 +88,11 @@ def test_grid_search_of_the_knn_graph_matches_the_window_search(scans):
             with torch_kernels():
                 _same_up_to_exact_ties(points, points, grid,
                                        window_knn(points, points, k, 0.08, block=32, exclude_self=True))
+    tiny = noisy[:, :40]                                         # searched whole: the grid without a window
+    for k in (1, 6):
+        grid = window_knn(tiny, tiny, k, 0.08, block=32, exclude_self=True, grid=True)
+        with torch_kernels():
+            _same_up_to_exact_ties(tiny, tiny, grid, window_knn(tiny, tiny, k, 0.08, block=32, exclude_self=True))
     # a non-finite point has no grid cell: the window search answers, indices stay in range
     broken = noisy[:1].clone()
     broken[0, 5] = float("nan")
@@ -126,21 +131,27 @@ def test_ball_query_kernel_matches_the_torch_ball_groups(scans):
     broken[0, 3] = float("nan")                                                # no grid: the scan answers
     far = x.clone()
     far[:, 0] = 1e30                                                           # an outlier packs the grid
-    cases = [(centers, mirrored, 0.05, True), (centers, x[:, :128], 0.1, False), (centers, x, 0.05, True),
-             (centers[:, :40], x[:, :30], 0.05, True),                         # tiny: searched whole
-             (centers, x[:, :3], 0.1, False),                                  # fewer points than m: padded
-             (centers, far, 0.05, True), (centers[:1], broken[:1], 0.05, True)]
-    for query, points, radius, window in cases:
-        fast = ball_group(query, points, radius, 4, window=window)
+    stretch = torch.tensor([40.0, 1.0, 1.0])                                   # the grid coarsens its cells
+    cases = [(centers, mirrored, 0.05, True, 4), (centers, x[:, :128], 0.1, False, 4), (centers, x, 0.05, True, 8),
+             (centers[:, :40], x[:, :30], 0.05, True, 4),                      # tiny: searched whole
+             (centers, x[:, :3], 0.1, False, 4),                               # fewer points than m: padded
+             (centers * stretch, x * stretch, 0.05, True, 8),
+             (centers, far, 0.05, True, 4), (centers[:1], broken[:1], 0.05, True, 4)]
+    for query, points, radius, window, m in cases:
+        fast = ball_group(query, points, radius, m, window=window)
         with torch_kernels():
-            reference = ball_group(query, points, radius, 4, window=window)
-        assert fast.shape == reference.shape == query.shape[:2] + (4,)
+            reference = ball_group(query, points, radius, m, window=window)
+        assert fast.shape == reference.shape == query.shape[:2] + (m,)
         d_fast, d_ref = _ball_distances(query, points, fast), _ball_distances(query, points, reference)
         finite = torch.isfinite(d_ref)
         assert torch.equal(finite, torch.isfinite(d_fast)) and torch.equal(d_fast[finite], d_ref[finite])
         assert (fast == reference).float().mean() > 0.5
         inside = d_ref[finite] <= radius * radius
         assert 0 < inside.float().mean() < 1 or len(points[0]) <= 3 or not torch.isfinite(points).all()
+    with pytest.raises(ValueError, match="ball_query"):          # the kernel's own contract, for direct callers
+        kernels.ball_query(x[:1].numpy(), x[:1, :3].numpy(), 4, 0.05, 32, True)
+    with pytest.raises(ValueError, match="ball_query"):
+        kernels.ball_query(x[:1].numpy(), x[:1].numpy(), 4, -0.05, 32, True)
 
 
 def test_kernel_window_edge_cases():

@@ -101,11 +101,16 @@ class BoxRefiner(nn.Module):
         self.register_buffer("limits", torch.tensor(FRAME_LIMITS), persistent=False)
         self._fold = FoldCache()   # ((bias, weight^T) per point layer)
 
+    def clear_fold(self) -> None:
+        """Drop the cached folded weights (after in-place changes through `.data`, as `LinearBN.clear_fold`)."""
+        self._fold.clear()
+
     def _point_code(self, partial: Tensor) -> Tensor:
         """(B, C) max-pooled point features; under inference mode in eval with each BN folded into its Conv1d
         (cached, like `LinearBN`), one GEMM per layer."""
         if self.training or not torch.is_inference_mode_enabled():
-            self._fold.clear()   # training moves the running statistics in place
+            if self.training:
+                self._fold.clear()   # training moves the running statistics in place
             return self.points(partial.transpose(1, 2)).amax(2)
         layers = [(self.points[i], self.points[i + 1]) for i in range(0, len(self.points), 3)]
         folded = self._fold.get([t for conv, bn in layers for t in (conv.weight, conv.bias, bn.weight, bn.bias,

@@ -368,9 +368,10 @@ def _grid_block_search(query: np.ndarray, g: _Grid, k: int, limit: np.float32, e
         if g.query_start[cc] == g.query_start[cc + 1]:
             continue
         cc3[0], cc3[1], cc3[2] = cc // (g.dims[1] * g.dims[2]), (cc // g.dims[2]) % g.dims[1], cc % g.dims[2]
-        for a in range(3):   # the block's faces; none (inf) where it reaches the grid's edge
-            face_lo[a] = g.lo[a] + (cc3[a] - 1) * g.cell if cc3[a] > 0 else -np.inf
-            face_hi[a] = g.lo[a] + (cc3[a] + 2) * g.cell if cc3[a] < g.dims[a] - 1 else np.inf
+        if not ball:   # the block's faces (a ball needs none); none (inf) where the block reaches the grid's edge
+            for a in range(3):
+                face_lo[a] = g.lo[a] + (cc3[a] - 1) * g.cell if cc3[a] > 0 else -np.inf
+                face_hi[a] = g.lo[a] + (cc3[a] + 2) * g.cell if cc3[a] < g.dims[a] - 1 else np.inf
         m = _block_candidates(g, cc, cc3, cand, cand_idx)
         for t in range(g.query_start[cc], g.query_start[cc + 1]):
             qi = g.query_order[t]
@@ -452,19 +453,24 @@ def knn(query: np.ndarray, ref: np.ndarray, k: int, margin: float, block: int, w
 @numba.njit(cache=True, nogil=True)
 def ball_query(query: np.ndarray, ref: np.ndarray, m: int, radius: float, block: int, windowed: bool) -> np.ndarray:
     """Indices (B, Q, m) of the m nearest ref points within `radius` of every query, ascending, the slots beyond
-    them holding the nearest ref point (PointNet++ padding); m <= the number of ref points. The nearest of a query
+    them holding the nearest ref point (PointNet++ padding); m <= the number of ref points, radius >= 0
+    (ValueError otherwise). The nearest of a query
     without any within `radius` is sought like `knn`'s (`windowed`: in the x-window of margin `radius` of its
     block of `block` x-sorted queries). The same indices as `ops.ball_group` over `knn`'s result up to the order
     of exact ties: a grid finds every query's ball and the scan only the nearest point of the others."""
     b, q = query.shape[0], query.shape[1]
+    if not 0 <= m <= ref.shape[1] or not radius >= 0:
+        raise ValueError("ball_query: need 0 <= m <= the number of ref points and radius >= 0")
     out = np.empty((b, q, m), np.int64)
-    if m == 0 or ref.shape[1] == 0:
+    if m == 0:
         return out
     r2 = np.float32(radius * radius)
     m32 = np.float32(radius)
     for c in range(b):
         done = np.zeros(q, np.bool_)
-        if m > 0 and _grid_ball_cloud(query[c], ref[c], m, radius, done, out[c]):
+        if _grid_ball_cloud(query[c], ref[c], m, radius, done, out[c]):
+            if done.all():
+                continue
             k = 1   # only the nearest is left to find
         else:
             k = m   # no grid: every query's m nearest, as `knn`
