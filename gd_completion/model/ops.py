@@ -165,15 +165,15 @@ def neighbour_mean(x: Tensor, nbr_flat: Tensor, k: int) -> Tensor:
 def ball_group(centers: Tensor, points: Tensor, radius: float, m: int, window: bool = False) -> Tensor:
     """Indices (B, Q, m) of the m nearest `points` of each center, those farther than `radius` replaced by
     the nearest one (PointNet++ ball-query padding). `window`: x-sorted window search with margin
-    `radius` (`window_knn`; exact inside the ball); else over all points."""
+    `radius` (`window_knn`; exact inside the ball); else over all points. CPU tensors take the compiled
+    `kernels.ball_query` (a grid for the balls, the scan only for the nearest point of an empty one)."""
     b, q, _ = centers.shape
     mm = min(m, points.shape[1])
     if _compiled(centers):   # the same indices up to the order of exact ties, faster
         from . import kernels
         windowed = window and not _tiny(q, points.shape[1], BALL_BLOCK)
-        with torch.no_grad():
-            idx = torch.from_numpy(kernels.ball_query(_as_numpy(centers), _as_numpy(points), mm, float(radius),
-                                                      BALL_BLOCK, windowed))
+        idx = torch.from_numpy(kernels.ball_query(_as_numpy(centers), _as_numpy(points), mm, float(radius),
+                                                  BALL_BLOCK, windowed))
     else:
         if window:
             dist, nn = window_knn(centers, points, mm, radius, block=BALL_BLOCK)
