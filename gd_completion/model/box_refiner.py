@@ -99,6 +99,7 @@ class BoxRefiner(nn.Module):
         self.head = nn.Sequential(*head)
         self.register_buffer("units", torch.tensor(FRAME_UNITS))
         self.register_buffer("limits", torch.tensor(FRAME_LIMITS), persistent=False)
+        self._pairs = tuple(zip(self.points[0::3], self.points[1::3]))   # (Conv1d, BatchNorm1d) per point layer
         self._fold = FoldCache()   # ((bias, weight^T) per point layer)
 
     def clear_fold(self) -> None:
@@ -112,10 +113,9 @@ class BoxRefiner(nn.Module):
             if self.training:
                 self._fold.clear()   # training moves the running statistics in place
             return self.points(partial.transpose(1, 2)).amax(2)
-        layers = [(self.points[i], self.points[i + 1]) for i in range(0, len(self.points), 3)]
-        folded = self._fold.get([t for conv, bn in layers for t in (conv.weight, conv.bias, bn.weight, bn.bias,
-                                                                       bn.running_mean, bn.running_var)],
-                                lambda: [fold_bn(conv.weight[:, :, 0], conv.bias, bn) for conv, bn in layers])
+        folded = self._fold.get([t for conv, bn in self._pairs for t in (conv.weight, conv.bias, bn.weight, bn.bias,
+                                                                           bn.running_mean, bn.running_var)],
+                                lambda: [fold_bn(conv.weight[:, :, 0], conv.bias, bn) for conv, bn in self._pairs])
         b, n, _ = partial.shape
         h = partial.reshape(b * n, 3)
         for bias, weight_t in folded:
