@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from gd_completion.merge import merge_measured, merge_with_fed, mirrored
-from gd_completion.model.kernels import _fps_cloud, fps, fps_pruned
+from gd_completion.model.kernels import FPS_LEAF, _fps_cloud, _morton_order, fps, fps_pruned
 from gd_completion.preprocess import network_input
 
 
@@ -62,10 +62,22 @@ def test_pruned_fps_matches_the_plain_scan_on_overflowed_distances_and_leaf_edge
     assert fps(huge[None], 0).shape == (1, 0)
     with pytest.raises(ValueError, match="fps"):   # never an out-of-bounds write
         fps(huge[None, :3], 4)
-    for m in (1, 31, 32, 33):                       # a leaf of 32: one point, one short of full, full, one over
+    for m in (1, FPS_LEAF - 1, FPS_LEAF, FPS_LEAF + 1):   # one point, a leaf one short of full, full, one over
         cloud = (rng.random((m, 3))).astype(np.float32)
         for n in sorted({1, m}):
             assert np.array_equal(fps_pruned(cloud, n), _plain_fps(cloud, n))
+
+
+def test_morton_order_is_the_stable_sort_of_interleaved_10_bit_codes():
+    rng = np.random.default_rng(11)
+    xyz = (rng.random((3000, 3)) * np.array([2.0, 0.5, 0.0])).astype(np.float32)   # z flat: code bits 0
+    xyz[1000:1300] = xyz[:300]                                                     # equal codes: by index
+    lo, span = xyz.min(0), xyz.max(0) - xyz.min(0)
+    unit = ((xyz - lo) / np.where(span > 0, span, 1)).astype(np.float64)   # float32 quotient, float64 scale
+    q = np.where(span > 0, unit * 1023.0, 0).astype(np.int64)
+    codes = sum(((q[:, a] >> b) & 1) << (3 * b + a) for a in range(3) for b in range(10))
+    assert np.array_equal(_morton_order(xyz), np.argsort(codes, kind="stable"))
+    assert np.array_equal(_morton_order(xyz[:1]), [0])
 
 
 @pytest.mark.parametrize(("shape", "n", "leaf"), [((10, 3), 0, 32), ((10, 3), 11, 32), ((0, 3), 1, 32),
