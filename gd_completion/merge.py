@@ -40,7 +40,7 @@ def mirrored(points: np.ndarray) -> np.ndarray:
 def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None = None) -> Merged:
     """Farthest point sampling of the union of `measured` (M, 3), its mirror image and `completion` (N_o, 3),
     all finite and in the normalised box frame, to `n` points (default N_o). Pass the measured points the
-    network saw (`merge_with_fed`) to bound the cost: about 1.5 ms for 512 measured and 2,048 completion
+    network saw (`merge_with_fed`) to bound the cost: about 0.8 ms for 512 measured and 2,048 completion
     points on one core. When the union holds fewer than `n` distinct points, all of them are kept and the
     completion's (else the mirror's) repeated."""
     completion = np.asarray(completion, np.float32).reshape(-1, 3)
