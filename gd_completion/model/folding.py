@@ -19,11 +19,13 @@ def fold_bn(weight: Tensor, bias: Tensor | None, bn: nn.BatchNorm1d) -> tuple[Te
 
 class FoldCache:
     """A value computed from some tensors, kept until one of them changes: another tensor, an in-place change
-    (its version counter), dtype or device. In-place changes through `.data` (its own version counter) are not
-    seen: `clear()` then. One attribute holds key and value, so threads sharing a module read a consistent pair."""
+    (its version counter), dtype or device. The entry holds the tensors it was computed from, so no new tensor
+    can take the address of one of them while it is cached (a parameter replaced by a new tensor of the same
+    version would otherwise look unchanged). In-place changes through `.data` (its own version counter) are not
+    seen: `clear()` then. One attribute holds the entry, so threads sharing a module read a consistent one."""
 
     def __init__(self) -> None:
-        self._entry: tuple[tuple, Any] | None = None
+        self._entry: tuple[tuple, tuple[Tensor, ...], Any] | None = None   # (key, sources, value)
 
     def clear(self) -> None:
         """Drop the cached value."""
@@ -33,7 +35,7 @@ class FoldCache:
     def cached(self) -> Any:
         """The cached value, None when there is none."""
         entry = self._entry
-        return None if entry is None else entry[1]
+        return None if entry is None else entry[2]
 
     def get(self, sources: Sequence[Tensor], compute: Callable[[], Any]) -> Any:
         """The cached value if `sources` are unchanged since it was computed, else `compute()` (as plain tensors:
@@ -42,6 +44,6 @@ class FoldCache:
         entry = self._entry
         if entry is None or entry[0] != key:
             with torch.inference_mode(False), torch.no_grad():
-                entry = (key, compute())
+                entry = (key, tuple(sources), compute())
             self._entry = entry
-        return entry[1]
+        return entry[2]
