@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
 out=${1:-benchmarks/results.txt}
 py=.venv/bin/python
 {
-  echo "# $(date -u +%FT%TZ) $(nproc) cores, $(uname -m), load before: $(cut -d' ' -f1-3 /proc/loadavg)"
+  echo "# $(date -u +%FT%TZ) $(nproc) cores, $(uname -m), code $(git rev-parse --short HEAD)$(git diff --quiet HEAD || echo ' (with uncommitted changes)'), load before: $(cut -d' ' -f1-3 /proc/loadavg)"
   echo "## model: torch path vs fast path (bench_model.py --stages --train)"; $py benchmarks/bench_model.py --stages --train || echo "!! bench_model.py failed"
   echo "## core (bench_core.py)"; $py benchmarks/bench_core.py || echo "!! bench_core.py failed"
   echo "## track fusion (bench_fusion.py)"; $py benchmarks/bench_fusion.py || echo "!! bench_fusion.py failed"

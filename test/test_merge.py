@@ -77,7 +77,12 @@ def test_morton_order_is_the_stable_sort_of_interleaved_10_bit_codes():
     q = np.where(span > 0, unit * 1023.0, 0).astype(np.int64)
     codes = sum(((q[:, a] >> b) & 1) << (3 * b + a) for a in range(3) for b in range(10))
     assert np.array_equal(_morton_order(xyz), np.argsort(codes, kind="stable"))
-    assert np.array_equal(_morton_order(xyz[:1]), [0])
+
+
+def test_pruned_fps_with_a_leaf_larger_than_the_cloud_is_the_plain_scan():
+    xyz = np.random.default_rng(12).random((300, 3)).astype(np.float32)
+    for leaf in (299, 300, 10**6, 2**62):          # 2**62: index * leaf would overflow int64 unclamped
+        assert np.array_equal(fps_pruned(xyz, 300, leaf), _plain_fps(xyz, 300))
 
 
 @pytest.mark.parametrize(("shape", "n", "leaf"), [((10, 3), 0, 32), ((10, 3), 11, 32), ((0, 3), 1, 32),

@@ -388,15 +388,18 @@ def test_eval_linear_bn_folds_the_current_parameters():
 
 
 def test_a_replaced_parameter_is_refolded_where_the_new_tensor_reuses_the_old_memory():
-    """A parameter replaced by a new tensor (version 0, the allocator often hands it the freed block) is folded anew:
-    the cache holds the tensors it folded, so no new one can take their address while it is cached."""
+    """A parameter replaced by a new tensor, or given new `.data` (version 0; the allocator often hands it the freed
+    block), is folded anew: the cache holds the storage it folded, so no new tensor can take its address."""
     layer = LinearBN(5, 7).eval()
     x = torch.randn(40, 5, generator=torch.Generator().manual_seed(1))
     for value in range(20):
         with torch.inference_mode():
             layer(x)
-        del layer.linear.weight
-        layer.linear.weight = torch.nn.Parameter(torch.full((7, 5), float(value)))
+        if value % 2:
+            layer.linear.weight.data = torch.full((7, 5), float(value))
+        else:
+            del layer.linear.weight
+            layer.linear.weight = torch.nn.Parameter(torch.full((7, 5), float(value)))
         with torch.no_grad():
             expected = torch.relu(layer.bn(layer.linear(x)))
         with torch.inference_mode():

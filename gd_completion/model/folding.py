@@ -19,10 +19,11 @@ def fold_bn(weight: Tensor, bias: Tensor | None, bn: nn.BatchNorm1d) -> tuple[Te
 
 class FoldCache:
     """A value computed from some tensors, kept until one of them changes: another tensor, an in-place change
-    (its version counter), dtype or device. The entry holds the tensors it was computed from, so no new tensor
-    can take the address of one of them while it is cached (a parameter replaced by a new tensor of the same
-    version would otherwise look unchanged). In-place changes through `.data` (its own version counter) are not
-    seen: `clear()` then. One attribute holds the entry, so threads sharing a module read a consistent one."""
+    (its version counter), dtype or device. The entry holds the storage of the tensors it was computed from, so
+    no new tensor can take one of their addresses while it is cached (a parameter replaced by a new tensor, or
+    given new `.data`, of the same version would otherwise look unchanged). In-place changes through `.data` (its
+    own version counter) are not seen: `clear()` then. One attribute holds the entry, so threads sharing a module
+    read a consistent one."""
 
     def __init__(self) -> None:
         self._entry: tuple[tuple, tuple[Tensor, ...], Any] | None = None   # (key, sources, value)
@@ -44,6 +45,6 @@ class FoldCache:
         entry = self._entry
         if entry is None or entry[0] != key:
             with torch.inference_mode(False), torch.no_grad():
-                entry = (key, tuple(sources), compute())
+                entry = (key, tuple(t.detach() for t in sources), compute())   # their storage, even if swapped
             self._entry = entry
         return entry[2]

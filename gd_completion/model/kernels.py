@@ -129,7 +129,7 @@ def fps_pruned(xyz: np.ndarray, n: int, leaf: int = FPS_LEAF) -> np.ndarray:
     if xyz.ndim != 2 or xyz.shape[1] != 3 or not 1 <= n <= len(xyz) or leaf < 1:
         raise ValueError(f"fps_pruned: need (M, 3) points, 1 <= n <= M and leaf >= 1; got {xyz.shape}, n={n}, "
                          f"leaf={leaf}")
-    return _fps_pruned(xyz, int(n), int(leaf))
+    return _fps_pruned(xyz, int(n), min(int(leaf), len(xyz)))   # one leaf at most: its index arithmetic stays small
 
 
 @numba.njit(cache=True, nogil=True)
