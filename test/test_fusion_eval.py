@@ -74,6 +74,8 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
         assert math.isfinite(r.fused_completion) and r.fused_completion > 0
         if r.n_single:
             assert math.isfinite(r.single_completion) and r.single_completion > 0
+            # adding every fused point can only bring the reference closer: never worse than the completion alone
+            assert r.single_with_fused <= r.single_completion + 1e-9 and r.measured_bound <= 1.0 + 1e-9
     # one frame fused: the fused partial is that frame (TrackFusion voxel-thins it), both completions agree
     tolerance = 1e-5 if factory is ConcatFusion else 0.1
     assert rows[1].fused_completion_single == pytest.approx(rows[1].single_completion, rel=tolerance)
@@ -85,6 +87,9 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
     if factory is ConcatFusion:
         assert all(later <= earlier + 1e-9 for earlier, later in zip(raw, raw[1:]))  # supersets: never worse
         assert raw[-1] == 0.0  # all 8 frames fused = the aggregate the reference is sampled from
+        if rows[0].n_single:   # so the completion with every fused point added covers the reference exactly
+            assert rows[0].single_with_fused == pytest.approx(0.0, abs=1e-6)   # x1e3 scale; distances by GEMM
+            assert rows[0].measured_bound < 1e-5
         # no cap (the default): every frame given is fused, here the same 8
         torch.manual_seed(0)
         uncapped = fusion_eval.evaluate_fusion(GGDNet(TINY).eval(), root, frames=range(0, 8), consistency_frames=4,
@@ -101,12 +106,14 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
 def test_fusion_section_text():
     from gd_completion.evaluation.report import fusion_section
 
-    cov = [fusion_eval.CoverageRow(k, 3, 2.0 / (k or 20), 0.5, 2, 0.3, 0.6) for k in fusion_eval.FUSED_FRAMES]
+    cov = [fusion_eval.CoverageRow(k, 3, 2.0 / (k or 20), 0.5, 2, 0.3, 0.6, 0.45) for k in fusion_eval.FUSED_FRAMES]
     cons = [fusion_eval.ConsistencyRow("stationary", 3, 10, 0.8, 0.2, 0.5, 0.2),
             fusion_eval.ConsistencyRow("moving", 2, 5, 1.0, 0.9)]
     text = fusion_section(fusion_eval.FusionResult(cov, cons, 20, 10, None, 3, 2, {}))
     assert "## PandaSet 002: track fusion" in text and "| all (<= 20) |" in text
-    assert "Target (a)/(c) <= 0.60 at k = 5: 0.500, met." in text
+    assert "Target (a)/(c) <= 0.60 at k = 5: 0.500, met. The fused measurements alone, added in full, give " \
+        "(d)/(c) = 0.750 there." in text
+    assert "| (d) (c) + raw fused | (d)/(c) |" in text
     assert "stationary 0.250 (met; without the merge 0.400), moving 0.900 (not met; without the merge nan)" in text
     assert "first 20 frames of each vehicle" in text and "first 10 frames" in text
     every = fusion_section(fusion_eval.FusionResult(cov, cons, None, 10, None, 3, 2, {}))

@@ -75,11 +75,18 @@ class CoverageRow:
     n_single: int                  # vehicles with >= MIN_INPUT_POINTS in that frame itself
     fused_completion_single: float  # fused completion over those same vehicles
     single_completion: float
+    single_with_fused: float = float("nan")   # the single-frame completion with every raw fused point added
 
     @property
     def ratio(self) -> float:
         """Fused completion / single-frame completion on the same vehicle-frames."""
         return _ratio(self.fused_completion_single, self.single_completion)
+
+    @property
+    def measured_bound(self) -> float:
+        """(single-frame completion + every raw fused point) / single-frame completion: how far the fused
+        measurements themselves, added in full to the single-frame completion, lower its error."""
+        return _ratio(self.single_with_fused, self.single_completion)
 
 
 @dataclass
@@ -118,6 +125,10 @@ class FusionResult:
     def coverage_ratio(self, k: int = RATIO_FRAMES) -> float:
         """(a)/(c) at `k` fused frames (NaN when the row is missing)."""
         return next((r.ratio for r in self.coverage if r.k == k), float("nan"))
+
+    def measured_bound(self, k: int = RATIO_FRAMES) -> float:
+        """(d)/(c) at `k` fused frames (`CoverageRow.measured_bound`; NaN when the row is missing)."""
+        return next((r.measured_bound for r in self.coverage if r.k == k), float("nan"))
 
 
 def consistency(completions: Sequence[np.ndarray], frames: Sequence[int]) -> list[float]:
@@ -250,7 +261,7 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
         notes.append(f"frames aligned to their track before fusion: {aligned}, alignments refused: {refused} "
                      "(stored as their boxes place them)" if aligned + refused else
                      "no frame was aligned to its track (alignment off: frames stored as their boxes place them)")
-    per_k: dict[int, list[tuple[float, float, float]]] = {k: [] for k in FUSED_FRAMES}
+    per_k: dict[int, list[tuple[float, float, float, float]]] = {k: [] for k in FUSED_FRAMES}
     single_only = 0
     for i, (cover, _) in plans.items():
         track = chosen[i]
@@ -263,18 +274,21 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
         for k, p in cover:
             raw = float(coverage_error(reference, track.fused[p])) * COVERAGE_SCALE
             done = float(coverage_error(reference, fused_done[(i, p)])) * COVERAGE_SCALE
-            one = float(coverage_error(reference, single_done[(i, p)])) * COVERAGE_SCALE \
-                if (i, p) in single_done else float("nan")
-            per_k[k].append((raw, done, one))
+            one = plus = float("nan")
+            if (i, p) in single_done:
+                one = float(coverage_error(reference, single_done[(i, p)])) * COVERAGE_SCALE
+                plus = float(coverage_error(reference, np.concatenate([single_done[(i, p)], track.fused[p]]))
+                             ) * COVERAGE_SCALE
+            per_k[k].append((raw, done, one, plus))
     if single_only:
         notes.append(f"{single_only} stationary vehicles seen in a single frame only were left out of the coverage "
                      "table (no multi-frame reference)")
     coverage = []
     for k, rows in per_k.items():
-        values = np.array(rows, dtype=np.float64).reshape(-1, 3)
+        values = np.array(rows, dtype=np.float64).reshape(-1, 4)
         same = values[~np.isnan(values[:, 2])]
         coverage.append(CoverageRow(k, len(values), _mean(values[:, 0]), _mean(values[:, 1]), len(same),
-                                    _mean(same[:, 1]), _mean(same[:, 2])))
+                                    _mean(same[:, 1]), _mean(same[:, 2]), _mean(same[:, 3])))
     rows_c = []
     for name, group in (("stationary", True), ("moving", False)):
         single_cd: list[float] = []
