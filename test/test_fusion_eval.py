@@ -44,6 +44,23 @@ def test_consistency_hand_computed():
     assert fusion_eval.consistency([a], [1]) == []
 
 
+def test_library_oracle_picks_the_best_stretched_shape():
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(-0.5, 0.5, (40, 3)).astype(np.float32) * np.array([1, 0.4, 0.3], np.float32)
+    measured = truth[truth[:, 1] > 0.1][:3]
+    size = (4.0, 1.6, 1.2)
+    # the same shape stored for a box twice as long (normalised: y and z halved): stretched back to `size`
+    stored = truth * np.array([1, 0.5, 0.5], np.float32)
+    other = truth + np.float32(0.05)
+    n = 2 * len(measured) + len(truth)   # nothing thinned away
+    exact = fusion_eval.library_oracle(truth, measured, size, [(other, size), (stored, (8.0, 1.6, 1.2))], n)
+    assert exact == pytest.approx(0.0, abs=1e-9)
+    wrong = fusion_eval.library_oracle(truth, measured, size, [(other, size)], n)
+    assert wrong > 1e-4
+    assert wrong <= fusion_eval.coverage_error(truth, other).item() + 1e-9   # the measured points only help
+    assert math.isnan(fusion_eval.library_oracle(truth, measured, size, [], n))
+
+
 def _fusions():
     yield pytest.param(ConcatFusion, id="concat-double")
     try:
@@ -76,6 +93,9 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
             assert math.isfinite(r.single_completion) and r.single_completion > 0
             # adding every fused point can only bring the reference closer: never worse than the completion alone
             assert r.single_with_fused <= r.single_completion + 1e-9 and r.measured_bound <= 1.0 + 1e-9
+            # the library oracle only at k = 5: the other chosen stationary vehicle's shape beside the fused points
+            assert math.isfinite(r.library_oracle) == (k == fusion_eval.RATIO_FRAMES)
+            assert not r.library_oracle < 0
     # one frame fused: the fused partial is that frame (TrackFusion voxel-thins it), both completions agree
     tolerance = 1e-5 if factory is ConcatFusion else 0.1
     assert rows[1].fused_completion_single == pytest.approx(rows[1].single_completion, rel=tolerance)
@@ -109,11 +129,13 @@ def test_fusion_section_text():
     cov = [fusion_eval.CoverageRow(k, 3, 2.0 / (k or 20), 0.5, 2, 0.3, 0.6, 0.45) for k in fusion_eval.FUSED_FRAMES]
     cons = [fusion_eval.ConsistencyRow("stationary", 3, 10, 0.8, 0.2, 0.5, 0.2),
             fusion_eval.ConsistencyRow("moving", 2, 5, 1.0, 0.9)]
+    cov = [replace(r, library_oracle=0.42) if r.k == 5 else r for r in cov]
     text = fusion_section(fusion_eval.FusionResult(cov, cons, 20, 10, None, 3, 2, {}))
     assert "## PandaSet 002: track fusion" in text and "| all (<= 20) |" in text
     assert "Target (a)/(c) <= 0.60 at k = 5: 0.500, met. The fused measurements alone, added in full, give " \
-        "(d)/(c) = 0.750 there." in text
-    assert "| (d) (c) + raw fused | (d)/(c) |" in text
+        "(d)/(c) = 0.750 there; with the best-matching other vehicle's shape, (e)/(c) = 0.700." in text
+    assert "| (d) (c) + raw fused | (d)/(c) | (e) library oracle | (e)/(c) |" in text
+    assert "| 0.420              | 0.700   |" in text and "| -                  | -       |" in text
     assert "stationary 0.250 (met; without the merge 0.400), moving 0.900 (not met; without the merge nan)" in text
     assert "first 20 frames of each vehicle" in text and "first 10 frames" in text
     every = fusion_section(fusion_eval.FusionResult(cov, cons, None, 10, None, 3, 2, {}))

@@ -11,6 +11,7 @@ import numpy as np
 
 from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_sensor
 from gd_completion.geometry import box_problem, finite_mask
+from gd_completion.merge import mirrored
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
 
@@ -24,9 +25,10 @@ from .pandaset_eval import (
     multi_frame_reference,
     stationary_vehicles,
 )
+from .priors import PRIOR_POINTS, thinned_union
 
 # Fused frames after which coverage is reported; "all" (0 here) = every fused frame up to the cap.
-FUSED_FRAMES: tuple[int, ...] = (1, 2, 5, 10, 0)
+FUSED_FRAMES: tuple[int, ...] = (1, 2, 5, 10, 20, 40, 0)
 RATIO_FRAMES = 5  # the issue's target: coverage (fused completion) / (single-frame completion) <= 0.60 at k = 5
 
 
@@ -76,6 +78,7 @@ class CoverageRow:
     fused_completion_single: float  # fused completion over those same vehicles
     single_completion: float
     single_with_fused: float = float("nan")   # the single-frame completion with every raw fused point added
+    library_oracle: float = float("nan")      # `library_oracle` over the same vehicles (k = RATIO_FRAMES only)
 
     @property
     def ratio(self) -> float:
@@ -87,6 +90,12 @@ class CoverageRow:
         """(single-frame completion + every raw fused point) / single-frame completion: how far the fused
         measurements themselves, added in full to the single-frame completion, lower its error."""
         return _ratio(self.single_with_fused, self.single_completion)
+
+    @property
+    def library_bound(self) -> float:
+        """(e) `library_oracle` / single-frame completion: what the best-matching real vehicle shape, picked knowing
+        the reference, gives beside the fused measurements."""
+        return _ratio(self.library_oracle, self.single_completion)
 
 
 @dataclass
@@ -130,6 +139,10 @@ class FusionResult:
         """(d)/(c) at `k` fused frames (`CoverageRow.measured_bound`; NaN when the row is missing)."""
         return next((r.measured_bound for r in self.coverage if r.k == k), float("nan"))
 
+    def library_bound(self, k: int = RATIO_FRAMES) -> float:
+        """(e)/(c) at `k` fused frames (`CoverageRow.library_bound`; NaN when the row is missing or not computed)."""
+        return next((r.library_bound for r in self.coverage if r.k == k), float("nan"))
+
 
 def consistency(completions: Sequence[np.ndarray], frames: Sequence[int]) -> list[float]:
     """Chamfer (unscaled) between completions of consecutive frames (frame numbers differing by one)."""
@@ -139,6 +152,23 @@ def consistency(completions: Sequence[np.ndarray], frames: Sequence[int]) -> lis
     a = np.stack([completions[i] for i, _ in pairs])
     b = np.stack([completions[j] for _, j in pairs])
     return [float(v) for v in chamfer(a, b)]
+
+
+def library_oracle(reference: np.ndarray, measured: np.ndarray, size: Sequence[float],
+                   library: Sequence[tuple[np.ndarray, Sequence[float]]], n: int = PRIOR_POINTS) -> float:
+    """Coverage error (unscaled) of the best of the outputs "`measured` (normalised), its mirror image and one
+    library shape, thinned to `n` points by farthest point sampling", chosen knowing `reference`: an oracle, not
+    a method. Each library entry is a vehicle's points (normalised by its own box) and its box size, stretched
+    per axis to `size`; NaN for an empty library."""
+    size = np.asarray(size, np.float64)
+    measured = np.asarray(measured, np.float32).reshape(-1, 3)
+    best = float("nan")
+    for shape, shape_size in library:
+        shape_size = np.asarray(shape_size, np.float64)
+        fitted = np.asarray(shape, np.float32) * ((size / size[0]) / (shape_size / shape_size[0])).astype(np.float32)
+        error = float(coverage_error(reference, thinned_union([measured, mirrored(measured), fitted], n)))
+        best = error if not best <= error else best
+    return best
 
 
 def vehicle_tracks(sequence: PandaSetSequence, sensor: int = PANDAR64) -> dict[str, tuple[str, bool]]:
@@ -191,7 +221,7 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
 
     Coverage (stationary vehicles seen in >= 2 frames, reference = all frames' points): the raw fused points,
     their completion and the single-frame completion after k of the vehicle's first `max_frames` frames (None:
-    all of them).
+    all of them); at k = RATIO_FRAMES also `library_oracle` with the other stationary vehicles' references.
     Consistency (stationary and moving): Chamfer between completions in consecutive frames among the first
     `consistency_frames` frames of each vehicle, frames with >= MIN_INPUT_POINTS points only.
     `max_vehicles`: the first N stationary and first N moving vehicles with >= MIN_INPUT_POINTS points in
@@ -261,34 +291,35 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
         notes.append(f"frames aligned to their track before fusion: {aligned}, alignments refused: {refused} "
                      "(stored as their boxes place them)" if aligned + refused else
                      "no frame was aligned to its track (alignment off: frames stored as their boxes place them)")
-    per_k: dict[int, list[tuple[float, float, float, float]]] = {k: [] for k in FUSED_FRAMES}
-    single_only = 0
+    references = {i: multi_frame_reference(t, reference_points) for i, t in chosen.items() if plans[i][0]}
+    single_only = sum(r is None for r in references.values())
+    library = {i: (r, np.median(np.array(chosen[i].sizes), axis=0)) for i, r in references.items() if r is not None}
+    per_k: dict[int, list[tuple[float, ...]]] = {k: [] for k in FUSED_FRAMES}
     for i, (cover, _) in plans.items():
-        track = chosen[i]
-        if not cover:
-            continue
-        reference = multi_frame_reference(track, reference_points)
+        track, reference = chosen[i], references.get(i)
         if reference is None:
-            single_only += 1
             continue
         for k, p in cover:
             raw = float(coverage_error(reference, track.fused[p])) * COVERAGE_SCALE
             done = float(coverage_error(reference, fused_done[(i, p)])) * COVERAGE_SCALE
-            one = plus = float("nan")
+            one = plus = oracle = float("nan")
             if (i, p) in single_done:
                 one = float(coverage_error(reference, single_done[(i, p)])) * COVERAGE_SCALE
                 plus = float(coverage_error(reference, np.concatenate([single_done[(i, p)], track.fused[p]]))
                              ) * COVERAGE_SCALE
-            per_k[k].append((raw, done, one, plus))
+                if k == RATIO_FRAMES:
+                    oracle = library_oracle(reference, track.fused[p], track.sizes[p],
+                                            [entry for j, entry in library.items() if j != i]) * COVERAGE_SCALE
+            per_k[k].append((raw, done, one, plus, oracle))
     if single_only:
         notes.append(f"{single_only} stationary vehicles seen in a single frame only were left out of the coverage "
                      "table (no multi-frame reference)")
     coverage = []
     for k, rows in per_k.items():
-        values = np.array(rows, dtype=np.float64).reshape(-1, 4)
+        values = np.array(rows, dtype=np.float64).reshape(-1, 5)
         same = values[~np.isnan(values[:, 2])]
         coverage.append(CoverageRow(k, len(values), _mean(values[:, 0]), _mean(values[:, 1]), len(same),
-                                    _mean(same[:, 1]), _mean(same[:, 2]), _mean(same[:, 3])))
+                                    _mean(same[:, 1]), _mean(same[:, 2]), _mean(same[:, 3]), _mean(same[:, 4])))
     rows_c = []
     for name, group in (("stationary", True), ("moving", False)):
         single_cd: list[float] = []
