@@ -133,15 +133,19 @@ class FusionResult:
 
     def coverage_ratio(self, k: int = RATIO_FRAMES) -> float:
         """(a)/(c) at `k` fused frames (NaN when the row is missing)."""
-        return next((r.ratio for r in self.coverage if r.k == k), float("nan"))
+        return self._row_value(k, "ratio")
 
     def measured_bound(self, k: int = RATIO_FRAMES) -> float:
         """(d)/(c) at `k` fused frames (`CoverageRow.measured_bound`; NaN when the row is missing)."""
-        return next((r.measured_bound for r in self.coverage if r.k == k), float("nan"))
+        return self._row_value(k, "measured_bound")
 
     def library_bound(self, k: int = RATIO_FRAMES) -> float:
         """(e)/(c) at `k` fused frames (`CoverageRow.library_bound`; NaN when the row is missing or not computed)."""
-        return next((r.library_bound for r in self.coverage if r.k == k), float("nan"))
+        return self._row_value(k, "library_bound")
+
+    def _row_value(self, k: int, name: str) -> float:
+        row = next((r for r in self.coverage if r.k == k), None)
+        return float("nan") if row is None else float(getattr(row, name))
 
 
 def consistency(completions: Sequence[np.ndarray], frames: Sequence[int]) -> list[float]:
@@ -162,13 +166,12 @@ def library_oracle(reference: np.ndarray, measured: np.ndarray, size: Sequence[f
     per axis to `size`; NaN for an empty library."""
     size = np.asarray(size, np.float64)
     measured = np.asarray(measured, np.float32).reshape(-1, 3)
-    best = float("nan")
+    errors = []
     for shape, shape_size in library:
         shape_size = np.asarray(shape_size, np.float64)
         fitted = np.asarray(shape, np.float32) * ((size / size[0]) / (shape_size / shape_size[0])).astype(np.float32)
-        error = float(coverage_error(reference, thinned_union([measured, mirrored(measured), fitted], n)))
-        best = error if not best <= error else best
-    return best
+        errors.append(float(coverage_error(reference, thinned_union([measured, mirrored(measured), fitted], n))))
+    return min(errors, default=float("nan"))
 
 
 def vehicle_tracks(sequence: PandaSetSequence, sensor: int = PANDAR64) -> dict[str, tuple[str, bool]]:
