@@ -216,24 +216,25 @@ def _positions(track: FusedTrack, max_frames: int | None, consistency_frames: in
     return cover, steady
 
 
-def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None = None, consistency_frames: int = 10,
-                    max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS, max_batch: int = 32,
-                    preprocessing: Preprocessing | None = None, frames: Sequence[int] | None = None,
-                    fusion_factory: Callable[[], Fusion] | None = None) -> FusionResult:
-    """Feed PandaSet's vehicles frame by frame to TrackFusion and complete the fused partials.
+@dataclass
+class FusedDrive:
+    """The chosen vehicles of a drive fed to a track fusion frame by frame (`fuse_drive`)."""
 
-    Coverage (stationary vehicles seen in >= 2 frames, reference = all frames' points): the raw fused points,
-    their completion and the single-frame completion after k of the vehicle's first `max_frames` frames (None:
-    all of them); at k = RATIO_FRAMES also `library_oracle` with the other stationary vehicles' references.
-    Consistency (stationary and moving): Chamfer between completions in consecutive frames among the first
-    `consistency_frames` frames of each vehicle, frames with >= MIN_INPUT_POINTS points only.
-    `max_vehicles`: the first N stationary and first N moving vehicles with >= MIN_INPUT_POINTS points in
-    one frame. `fusion_factory`: default `gd_completion.fusion.TrackFusion`.
-    """
+    tracks: dict[int, FusedTrack]   # by instance id
+    dropped: int                    # vehicle-frames the fusion returned nothing for (their own frame kept)
+    counters: dict[str, int]        # the fusion's counters at the end (when it has them)
+    seconds: dict[str, float]
+
+
+def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles: int | None = None,
+               preprocessing: Preprocessing | None = None, frames: Sequence[int] | None = None,
+               fusion_factory: Callable[[], Fusion] | None = None) -> FusedDrive:
+    """Feed PandaSet's vehicles (Pandar64, time order) frame by frame to a fresh fusion, each vehicle's first
+    `max_frames` frames (None: all); `max_vehicles`: the first N stationary and first N moving vehicles with
+    >= MIN_INPUT_POINTS points in one frame. `fusion_factory`: default `gd_completion.fusion.TrackFusion`."""
     if fusion_factory is None:
         from gd_completion.fusion import TrackFusion
         fusion_factory = TrackFusion
-    max_frames = None if max_frames is None else max(1, max_frames)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     sequence = PandaSetSequence(root)
@@ -267,6 +268,26 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
             dropped += out is None
             chosen[vehicle.box.instance_id].fused.append(np.asarray((out or vehicle).normalized, np.float32))
     seconds["fusion"] = time.perf_counter() - t1
+    return FusedDrive(chosen, dropped, dict(getattr(fusion, "counters", {})), seconds)
+
+
+def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None = None, consistency_frames: int = 10,
+                    max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS, max_batch: int = 32,
+                    preprocessing: Preprocessing | None = None, frames: Sequence[int] | None = None,
+                    fusion_factory: Callable[[], Fusion] | None = None) -> FusionResult:
+    """Feed PandaSet's vehicles frame by frame to TrackFusion and complete the fused partials.
+
+    Coverage (stationary vehicles seen in >= 2 frames, reference = all frames' points): the raw fused points,
+    their completion and the single-frame completion after k of the vehicle's first `max_frames` frames (None:
+    all of them); at k = RATIO_FRAMES also `library_oracle` with the other stationary vehicles' references.
+    Consistency (stationary and moving): Chamfer between completions in consecutive frames among the first
+    `consistency_frames` frames of each vehicle, frames with >= MIN_INPUT_POINTS points only.
+    `max_vehicles`, `frames`, `fusion_factory`: as `fuse_drive`.
+    """
+    max_frames = None if max_frames is None else max(1, max_frames)
+    drive = fuse_drive(root, max_frames=max_frames, max_vehicles=max_vehicles, preprocessing=preprocessing,
+                       frames=frames, fusion_factory=fusion_factory)
+    chosen, dropped, seconds = drive.tracks, drive.dropped, dict(drive.seconds)
 
     t2 = time.perf_counter()
     plans = {i: _positions(t, max_frames, consistency_frames) for i, t in chosen.items()}
@@ -288,7 +309,7 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     t3 = time.perf_counter()
     notes = [f"TrackFusion returned no fused partial for {dropped} vehicle-frames (their own frame was used)"] \
         if dropped else []
-    counters = getattr(fusion, "counters", {})
+    counters = drive.counters
     if "frames_aligned" in counters:
         aligned, refused = counters["frames_aligned"], counters["alignments_refused"]
         notes.append(f"frames aligned to their track before fusion: {aligned}, alignments refused: {refused} "
