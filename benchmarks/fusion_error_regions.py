@@ -8,9 +8,10 @@ a fused point or its mirror image) and "unseen", and the coverage error x1e3 of 
 (c), the network's own output on the fused partial, points filling the box uniformly, the fused partial's
 completion with the network fed more of the fused points, the best-fitting other vehicle's shape (retrieval
 without the answer) beside the fused points, and 2,048 points of the reference itself (farthest point sampling: the
-floor of a 2,048-point output). Unseen points are also counted by region of the box.
+floor of a 2,048-point output). Unseen points are also counted by region of the box; --plot draws the first
+vehicles' reference points coloured by their distance to (a), with the fused points and (a) over them.
 
-    python benchmarks/fusion_error_regions.py [--k 5] [--radius 0.02]
+    python benchmarks/fusion_error_regions.py [--k 5] [--radius 0.02] [--plot regions.png]
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from gd_completion.evaluation.metrics import COVERAGE_SCALE, nearest_sq_distance
 from gd_completion.evaluation.pandaset_eval import REFERENCE_POINTS, multi_frame_reference
 from gd_completion.evaluation.priors import box_fill, thinned_union
 from gd_completion.merge import mirrored
-from gd_completion.model.checkpoint import load_model
+from gd_completion.model.checkpoint import load_checkpoint
 
 PANDASET = Path(__file__).resolve().parents[2] / "shared" / "data" / "pandaset-002"
 END_SLAB, ROOF_FLOOR_SLAB = 0.08, 0.05   # normalised depth of the box's end, roof and floor slabs
@@ -57,15 +58,18 @@ def main() -> None:
     parser.add_argument("--k", type=int, default=5, help="fused frames")
     parser.add_argument("--radius", type=float, default=0.02, help="'seen' radius, normalised (length = 1)")
     parser.add_argument("--root", type=Path, default=PANDASET)
+    parser.add_argument("--plot", type=Path, help="PNG of the first --plot-vehicles vehicles")
+    parser.add_argument("--plot-vehicles", type=int, default=4)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    model = load_model()
-    drive = fuse_drive(args.root)
-    tracks = [t for t in drive.tracks.values() if t.stationary and len(t.frames) >= args.k]
-    references = {t.instance_id: multi_frame_reference(t, REFERENCE_POINTS) for t in tracks}
-    library = {t.instance_id: (references[t.instance_id], np.median(np.array(t.sizes), axis=0)) for t in tracks
-               if references[t.instance_id] is not None}
-    chosen = [t for t in tracks if references[t.instance_id] is not None and t.usable(args.k - 1)]
+    model, preprocessing = load_checkpoint()
+    drive = fuse_drive(args.root, preprocessing=preprocessing)
+    stationary = [t for t in drive.tracks.values() if t.stationary]
+    references = {t.instance_id: multi_frame_reference(t, REFERENCE_POINTS) for t in stationary}
+    library = {i: (r, np.median(np.array(drive.tracks[i].sizes), axis=0)) for i, r in references.items()
+               if r is not None}
+    chosen = [t for t in stationary if t.instance_id in library and len(t.frames) >= args.k
+              and t.usable(args.k - 1)]
     p = args.k - 1
     sizes = np.array([t.sizes[p] for t in chosen], np.float64)
     fused, single = [t.fused[p] for t in chosen], [t.single[p] for t in chosen]
@@ -74,7 +78,7 @@ def main() -> None:
     outputs["network output on the fused partial"] = outputs["(a) fused completion"].completion
     outputs = {name: getattr(o, "published", o) for name, o in outputs.items()}
     for count in (1024, 2048):
-        wider = load_model()
+        wider = load_checkpoint()[0]
         wider.config = replace(model.config, num_input=count)
         outputs[f"(a) with {count} fused points fed"] = published_outputs(wider, fused, sizes).published
     outputs["box fill"] = box_fill(sizes)
@@ -105,6 +109,33 @@ def main() -> None:
     single = table["(c) single-frame completion"][0]
     for name, (mean, part) in table.items():
         print(f"{name:52s} {mean:7.3f} {mean - part:7.3f} {part:7.3f}  {mean / single:.3f} of (c)")
+    if args.plot:
+        plot(args.plot, [(t.instance_id, references[t.instance_id], f, a) for t, f, a in zip(
+            chosen, fused, outputs["(a) fused completion"])][:args.plot_vehicles])
+
+
+def plot(path: Path, vehicles: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]) -> None:
+    """Per vehicle (id, reference, fused points, (a)): side, top and rear views of the reference coloured by the
+    distance to (a) (0 to 4 % of the length), the fused points (black) and (a) (magenta) over them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(vehicles), 3, figsize=(18, 4 * len(vehicles)), squeeze=False)
+    for row, (ident, reference, fused, done) in enumerate(vehicles):
+        distance = np.sqrt(squared(reference, done))
+        error = float(np.mean(distance ** 2)) * COVERAGE_SCALE
+        for ax, (a, b, view) in zip(axes[row], [(0, 2, "side (x-z)"), (0, 1, "top (x-y)"), (1, 2, "rear (y-z)")]):
+            ax.scatter(reference[:, a], reference[:, b], s=2, c=distance, cmap="jet", vmin=0, vmax=0.04)
+            ax.scatter(fused[:, a], fused[:, b], s=0.3, c="k", alpha=0.3)
+            ax.scatter(done[:, a], done[:, b], s=0.3, c="m", alpha=0.3)
+            ax.set_aspect("equal")
+            ax.set_title(f"vehicle {ident}, {view}: coverage error x1e3 {error:.3f}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=60)
+    print(f"wrote {path}")
+
 
 if __name__ == "__main__":
     main()

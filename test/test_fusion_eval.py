@@ -53,12 +53,15 @@ def test_library_oracle_picks_the_best_stretched_shape():
     stored = truth * np.array([1, 0.5, 0.5], np.float32)
     other = truth + np.float32(0.05)
     n = 2 * len(measured) + len(truth)   # nothing thinned away
-    exact = fusion_eval.library_oracle(truth, measured, size, [(other, size), (stored, (8.0, 1.6, 1.2))], n)
-    assert exact == pytest.approx(0.0, abs=1e-9)
+    for library in ([(other, size), (stored, (8.0, 1.6, 1.2))], [(stored, (8.0, 1.6, 1.2)), (other, size)]):
+        assert fusion_eval.library_oracle(truth, measured, size, library, n) == pytest.approx(0.0, abs=1e-9)
     wrong = fusion_eval.library_oracle(truth, measured, size, [(other, size)], n)
     assert wrong > 1e-4
     assert wrong <= fusion_eval.coverage_error(truth, other).item() + 1e-9   # the measured points only help
     assert math.isnan(fusion_eval.library_oracle(truth, measured, size, [], n))
+    # thinned to fewer points than the truth has, the exact shape can no longer cover it exactly
+    thinned = fusion_eval.library_oracle(truth, measured, size, [(stored, (8.0, 1.6, 1.2))], 8)
+    assert 0 < thinned < fusion_eval.coverage_error(truth, truth[:1]).item()
 
 
 def _fusions():
@@ -93,9 +96,8 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
             assert math.isfinite(r.single_completion) and r.single_completion > 0
             # adding every fused point can only bring the reference closer: never worse than the completion alone
             assert r.single_with_fused <= r.single_completion + 1e-9 and r.measured_bound <= 1.0 + 1e-9
-            # the library oracle only at k = 5: the other chosen stationary vehicle's shape beside the fused points
+            # the library oracle only at k = 5: the other chosen stationary vehicle's points beside the fused points
             assert math.isfinite(r.library_oracle) == (k == fusion_eval.RATIO_FRAMES)
-            assert not r.library_oracle < 0
     # one frame fused: the fused partial is that frame (TrackFusion voxel-thins it), both completions agree
     tolerance = 1e-5 if factory is ConcatFusion else 0.1
     assert rows[1].fused_completion_single == pytest.approx(rows[1].single_completion, rel=tolerance)
@@ -133,7 +135,7 @@ def test_fusion_section_text():
     text = fusion_section(fusion_eval.FusionResult(cov, cons, 20, 10, None, 3, 2, {}))
     assert "## PandaSet 002: track fusion" in text and "| all (<= 20) |" in text
     assert "Target (a)/(c) <= 0.60 at k = 5: 0.500, met. The fused measurements alone, added in full, give " \
-        "(d)/(c) = 0.750 there; with the best-matching other vehicle's shape, (e)/(c) = 0.700." in text
+        "(d)/(c) = 0.750 there; with the best-matching other vehicle's points, (e)/(c) = 0.700." in text
     assert "| (d) (c) + raw fused | (d)/(c) | (e) library oracle | (e)/(c) |" in text
     assert "| 0.420              | 0.700   |" in text and "| -                  | -       |" in text
     assert "stationary 0.250 (met; without the merge 0.400), moving 0.900 (not met; without the merge nan)" in text

@@ -66,6 +66,7 @@ class FusedTrack:
 def _ratio(numerator: float, denominator: float) -> float:
     return numerator / denominator if denominator > 0 else float("nan")
 
+
 @dataclass
 class CoverageRow:
     """Coverage error x1e3 after `k` fused frames (k = 0: all fused frames up to the cap), means over vehicles."""
@@ -92,9 +93,9 @@ class CoverageRow:
         return _ratio(self.single_with_fused, self.single_completion)
 
     @property
-    def library_bound(self) -> float:
-        """(e) `library_oracle` / single-frame completion: what the best-matching real vehicle shape, picked knowing
-        the reference, gives beside the fused measurements."""
+    def library_ratio(self) -> float:
+        """(e) `library_oracle` / single-frame completion: what the best of the other vehicles' aggregates, picked
+        knowing the reference, gives beside the fused measurements (an oracle of one recipe, not a bound)."""
         return _ratio(self.library_oracle, self.single_completion)
 
 
@@ -139,9 +140,9 @@ class FusionResult:
         """(d)/(c) at `k` fused frames (`CoverageRow.measured_bound`; NaN when the row is missing)."""
         return self._row_value(k, "measured_bound")
 
-    def library_bound(self, k: int = RATIO_FRAMES) -> float:
-        """(e)/(c) at `k` fused frames (`CoverageRow.library_bound`; NaN when the row is missing or not computed)."""
-        return self._row_value(k, "library_bound")
+    def library_ratio(self, k: int = RATIO_FRAMES) -> float:
+        """(e)/(c) at `k` fused frames (`CoverageRow.library_ratio`; NaN when the row is missing or not computed)."""
+        return self._row_value(k, "library_ratio")
 
     def _row_value(self, k: int, name: str) -> float:
         row = next((r for r in self.coverage if r.k == k), None)
@@ -235,6 +236,7 @@ def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles:
     if fusion_factory is None:
         from gd_completion.fusion import TrackFusion
         fusion_factory = TrackFusion
+    max_frames = None if max_frames is None else max(1, max_frames)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     sequence = PandaSetSequence(root)

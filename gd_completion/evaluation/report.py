@@ -203,7 +203,7 @@ def fusion_section(result: FusionResult) -> str:
     every = "all" if result.max_frames is None else f"all (<= {result.max_frames})"
     rows = [[str(r.k) if r.k else every, r.n_vehicles, r.raw_fused, r.fused_completion, r.n_single,
              r.fused_completion_single, r.single_completion, r.ratio, r.single_with_fused, r.measured_bound,
-             r.library_oracle, r.library_bound] for r in result.coverage]
+             r.library_oracle, r.library_ratio] for r in result.coverage]
     ratio = result.coverage_ratio(RATIO_FRAMES)
     parts.append("### Coverage error x1e3 after k fused frames (stationary vehicles)\n\n"
                  "Reference: the vehicle's points over all frames of the sequence in its box frame, 4096 voxel-uniform "
@@ -216,16 +216,16 @@ def fusion_section(result: FusionResult) -> str:
                  "frame completion; (d)/(c) above a target means the fused frames saw too little that the k-th frame "
                  "had not, and only a better guess of the unseen parts could reach it. (e), at k = "
                  f"{RATIO_FRAMES} only: an oracle of that better guess, not a method: the raw fused points, their "
-                 "mirror image and one real vehicle's shape (another stationary vehicle's reference, stretched to "
+                 "mirror image and one real vehicle's points (another stationary vehicle's reference, stretched to "
                  "this box), thinned to 2,048 points by farthest point sampling, the vehicle picked from all the "
-                 "others knowing this vehicle's reference.\n\n"
+                 "others knowing this vehicle's reference (the best of one recipe, not a bound).\n\n"
                  + markdown_table(["k", "vehicles", "(b) raw fused", "(a) fused completion", "vehicles >= 50 pts",
                                    "(a) same vehicles", "(c) single-frame completion", "(a)/(c)",
                                    "(d) (c) + raw fused", "(d)/(c)", "(e) library oracle", "(e)/(c)"], rows)
                  + f"\n\nTarget (a)/(c) <= 0.60 at k = {RATIO_FRAMES}: {ratio:.3f}, "
                  + ("met." if ratio <= 0.60 else "not met.")
                  + f" The fused measurements alone, added in full, give (d)/(c) = {result.measured_bound():.3f} there;"
-                 f" with the best-matching other vehicle's shape, (e)/(c) = {result.library_bound():.3f}.")
+                 f" with the best-matching other vehicle's points, (e)/(c) = {result.library_ratio():.3f}.")
     rows = [[r.group, r.n_vehicles, r.n_pairs, r.single, r.fused, r.ratio, r.single_network, r.fused_network,
              r.ratio_network] for r in result.consistency]
     verdict = ", ".join(f"{r.group} {r.ratio:.3f} ({'met' if r.ratio <= 0.5 else 'not met'}; without the merge "
