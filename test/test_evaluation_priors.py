@@ -43,6 +43,8 @@ def test_template_fits_the_box_and_thinning_keeps_the_count():
     outs = priors.prior_outputs(partial, SIZES[0])
     assert set(outs) == {"box_fill", "template", "mirror_template"}
     assert all(v.shape == (2048, 3) for v in outs.values())
+    np.testing.assert_array_equal(outs["mirror_template"], union)   # the prior is that union
+    np.testing.assert_array_equal(priors.mirror_template(partial, SIZES[0]), union)
 
 
 def test_grid_nearest_matches_brute_force():

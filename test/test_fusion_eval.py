@@ -98,10 +98,12 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
             assert r.single_with_fused <= r.single_completion + 1e-9 and r.measured_bound <= 1.0 + 1e-9
             # the library oracle only at k = 5: the other chosen stationary vehicle's points beside the fused points
             assert math.isfinite(r.library_oracle) == (k == fusion_eval.RATIO_FRAMES)
+            assert r.prior_fused > 0 and r.prior_single > 0 and math.isfinite(r.prior_ratio)
     # one frame fused: the fused partial is that frame (TrackFusion voxel-thins it), both completions agree
     tolerance = 1e-5 if factory is ConcatFusion else 0.1
     assert rows[1].fused_completion_single == pytest.approx(rows[1].single_completion, rel=tolerance)
     assert rows[1].ratio == pytest.approx(1.0, rel=tolerance)
+    assert rows[1].prior_ratio == pytest.approx(1.0, rel=tolerance)   # so do both priors
     # more frames of a parked car cover more of its aggregate
     raw = [rows[k].raw_fused for k in (1, 2, 5, 0)]
     assert raw[0] > raw[-1]
@@ -131,13 +133,17 @@ def test_fusion_section_text():
     cov = [fusion_eval.CoverageRow(k, 3, 2.0 / (k or 20), 0.5, 2, 0.3, 0.6, 0.45) for k in fusion_eval.FUSED_FRAMES]
     cons = [fusion_eval.ConsistencyRow("stationary", 3, 10, 0.8, 0.2, 0.5, 0.2),
             fusion_eval.ConsistencyRow("moving", 2, 5, 1.0, 0.9)]
-    cov = [replace(r, library_oracle=0.42) if r.k == 5 else r for r in cov]
+    cov = [replace(r, library_oracle=0.42, prior_fused=0.4, prior_single=0.5) if r.k == 5 else r for r in cov]
     text = fusion_section(fusion_eval.FusionResult(cov, cons, 20, 10, None, 3, 2, {}))
     assert "## PandaSet 002: track fusion" in text and "| all (<= 20) |" in text
     assert "Target (a)/(c) <= 0.60 at k = 5: 0.500, met. The fused measurements alone, added in full, give " \
         "(d)/(c) = 0.750 there; with the best-matching other vehicle's points, (e)/(c) = 0.700." in text
     assert "| (d) (c) + raw fused | (d)/(c) | (e) library oracle | (e)/(c) |" in text
     assert "| 0.420              | 0.700   |" in text and "| -                  | -       |" in text
+    prior_table = text[text.index("### Beside the box-only prior"):]
+    row_5 = next(line for line in prior_table.splitlines() if line.startswith("| 5 "))
+    assert [c.strip() for c in row_5.strip("|").split("|")] == ["5", "2", "0.300", "0.600", "0.500", "0.400", "0.500",
+                                                               "0.800"]
     assert "stationary 0.250 (met; without the merge 0.400), moving 0.900 (not met; without the merge nan)" in text
     assert "first 20 frames of each vehicle" in text and "first 10 frames" in text
     every = fusion_section(fusion_eval.FusionResult(cov, cons, None, 10, None, 3, 2, {}))

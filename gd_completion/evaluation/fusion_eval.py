@@ -25,7 +25,7 @@ from .pandaset_eval import (
     multi_frame_reference,
     stationary_vehicles,
 )
-from .priors import PRIOR_POINTS, thinned_union
+from .priors import PRIOR_POINTS, mirror_template, thinned_union
 
 # Fused frames after which coverage is reported; "all" (0 here) = every fused frame up to the cap.
 FUSED_FRAMES: tuple[int, ...] = (1, 2, 5, 10, 20, 40, 0)
@@ -80,6 +80,8 @@ class CoverageRow:
     single_completion: float
     single_with_fused: float = float("nan")   # the single-frame completion with every raw fused point added
     library_oracle: float = float("nan")      # `library_oracle` over the same vehicles (k = RATIO_FRAMES only)
+    prior_fused: float = float("nan")         # the box-only prior mirror + template on the fused partial and
+    prior_single: float = float("nan")        # on the k-th frame alone, both over the vehicles of (c)
 
     @property
     def ratio(self) -> float:
@@ -91,6 +93,11 @@ class CoverageRow:
         """(single-frame completion + every raw fused point) / single-frame completion: how far the fused
         measurements themselves, added in full to the single-frame completion, lower its error."""
         return _ratio(self.single_with_fused, self.single_completion)
+
+    @property
+    def prior_ratio(self) -> float:
+        """Mirror + template on the fused partial / on the k-th frame alone: what fusion gives the box-only prior."""
+        return _ratio(self.prior_fused, self.prior_single)
 
     @property
     def library_ratio(self) -> float:
@@ -326,26 +333,28 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
         if reference is None:
             continue
         for k, p in cover:
-            raw = float(coverage_error(reference, track.fused[p])) * COVERAGE_SCALE
-            done = float(coverage_error(reference, fused_done[(i, p)])) * COVERAGE_SCALE
-            one = plus = oracle = float("nan")
+            size = np.asarray(track.sizes[p])
+            raw, done = _coverage(reference, track.fused[p]), _coverage(reference, fused_done[(i, p)])
+            prior_fused = _coverage(reference, mirror_template(track.fused[p], size))
+            one = plus = oracle = prior_single = float("nan")
             if (i, p) in single_done:
-                one = float(coverage_error(reference, single_done[(i, p)])) * COVERAGE_SCALE
-                plus = float(coverage_error(reference, np.concatenate([single_done[(i, p)], track.fused[p]]))
-                             ) * COVERAGE_SCALE
+                one = _coverage(reference, single_done[(i, p)])
+                plus = _coverage(reference, np.concatenate([single_done[(i, p)], track.fused[p]]))
+                prior_single = _coverage(reference, mirror_template(track.single[p], size))
                 if k == RATIO_FRAMES:
-                    oracle = library_oracle(reference, track.fused[p], track.sizes[p],
-                                            [entry for j, entry in library.items() if j != i]) * COVERAGE_SCALE
-            per_k[k].append((raw, done, one, plus, oracle))
+                    oracle = library_oracle(reference, track.fused[p], size, [
+                        entry for j, entry in library.items() if j != i]) * COVERAGE_SCALE
+            per_k[k].append((raw, done, one, plus, oracle, prior_fused, prior_single))
     if single_only:
         notes.append(f"{single_only} stationary vehicles seen in a single frame only were left out of the coverage "
                      "table (no multi-frame reference)")
     coverage = []
     for k, rows in per_k.items():
-        values = np.array(rows, dtype=np.float64).reshape(-1, 5)
+        values = np.array(rows, dtype=np.float64).reshape(-1, 7)
         same = values[~np.isnan(values[:, 2])]
         coverage.append(CoverageRow(k, len(values), _mean(values[:, 0]), _mean(values[:, 1]), len(same),
-                                    _mean(same[:, 1]), _mean(same[:, 2]), _mean(same[:, 3]), _mean(same[:, 4])))
+                                    _mean(same[:, 1]), _mean(same[:, 2]), _mean(same[:, 3]), _mean(same[:, 4]),
+                                    _mean(same[:, 5]), _mean(same[:, 6])))
     rows_c = []
     for name, group in (("stationary", True), ("moving", False)):
         single_cd: list[float] = []
@@ -370,6 +379,11 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     n_stationary = sum(t.stationary for t in chosen.values())
     return FusionResult(coverage, rows_c, max_frames, consistency_frames, max_vehicles, n_stationary,
                         len(chosen) - n_stationary, seconds, notes)
+
+
+def _coverage(reference: np.ndarray, output: np.ndarray) -> float:
+    """Coverage error x1e3 (`metrics.coverage_error` times COVERAGE_SCALE)."""
+    return float(coverage_error(reference, output)) * COVERAGE_SCALE
 
 
 def _mean(values: np.ndarray) -> float:

@@ -2,8 +2,8 @@
 
 - `box_fill`: points uniform in the box volume (no input at all);
 - `template_points`: a fixed procedural sedan fitted to the box size, sampled on its surface (no input);
-- `thinned_union`: the mirror baseline together with the template, thinned to the output count by farthest
-  point sampling (`preprocess.resample_indices`: deterministic, no seed).
+- `mirror_template`: the mirror baseline together with the template, thinned to the output count by farthest
+  point sampling (`thinned_union`, `preprocess.resample_indices`: deterministic, no seed).
 """
 from __future__ import annotations
 
@@ -69,10 +69,18 @@ def thinned_union(clouds: list[np.ndarray], n: int = PRIOR_POINTS) -> np.ndarray
     return union[resample_indices(len(union), union, n)]
 
 
-def prior_outputs(partial: np.ndarray, size: np.ndarray, n: int = PRIOR_POINTS) -> dict[str, np.ndarray]:
-    """The three box-only priors of one vehicle: its normalised `partial` (M, 3), its box `size` (3,)."""
+def mirror_template(partial: np.ndarray, size: np.ndarray, n: int = PRIOR_POINTS,
+                    template: np.ndarray | None = None) -> np.ndarray:
+    """(n, 3): the "mirror + template" prior of one vehicle, its normalised `partial` (M, 3) and its mirror image
+    with the template fitted to its box `size` (3,) (`template`: that template's points, when already sampled),
+    thinned to `n` points."""
     from .baselines import mirror_symmetry
 
+    template = template_points(size, n)[0] if template is None else template
+    return thinned_union([mirror_symmetry(partial), template], n)
+
+
+def prior_outputs(partial: np.ndarray, size: np.ndarray, n: int = PRIOR_POINTS) -> dict[str, np.ndarray]:
+    """The three box-only priors of one vehicle: its normalised `partial` (M, 3), its box `size` (3,)."""
     fill, template = box_fill(size, n)[0], template_points(size, n)[0]
-    return {"box_fill": fill, "template": template,
-            "mirror_template": thinned_union([mirror_symmetry(partial), template], n)}
+    return {"box_fill": fill, "template": template, "mirror_template": mirror_template(partial, size, n, template)}
