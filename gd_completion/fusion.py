@@ -67,11 +67,17 @@ class FusionLimits:
 
 
 def voxel_first_indices(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Ascending indices of the first point (in input order) of each `voxel_size` voxel of `points` (M, 3)."""
+    """Ascending indices of the first point (in input order) of each `voxel_size` voxel of `points` (M, 3),
+    all finite."""
     if len(points) == 0:
         return np.zeros(0, np.intp)
     keys = np.floor(np.asarray(points, dtype=np.float64) / voxel_size)   # integer-valued, no overflow
-    return np.sort(np.unique(keys, axis=0, return_index=True)[1])
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    if float(np.prod(span)) >= 2.0 ** 62:   # one integer code per voxel would overflow: unique rows instead
+        return np.sort(np.unique(keys, axis=0, return_index=True)[1])
+    code = keys.astype(np.int64) @ np.array([span[1] * span[2], span[2], 1], np.int64)
+    return np.sort(np.unique(code, return_index=True)[1])
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:

@@ -6,7 +6,9 @@ union of the measured points fed to the network (at most its input size), their 
 box's longitudinal plane (y -> -y) and the completion, and keeps N_o of them by farthest point sampling
 (deterministic, starting at a measured point): measured points replace network points where they lie
 densely, the network fills what is unseen, and the spacing stays even. The box-only analogue (mirror and
-a template instead of the network) is the "mirror + template" prior of the evaluation.
+a template instead of the network) is the "mirror + template" prior of the evaluation. A track's fused partial
+(track fusion) holds far more measured points than the network's input: it is merged with one of its points per
+`FUSED_POOL_VOXEL` voxel instead (`merge_with_pool`).
 """
 from __future__ import annotations
 
@@ -14,8 +16,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gd_completion.fusion import voxel_first_indices
 from gd_completion.model.kernels import fps_pruned
 from gd_completion.preprocess import resample_indices
+
+# A track's fused partial is merged with one of its points per voxel of this size (normalised: 2 % of the length),
+# not with the network's input: measured on PandaSet-002 (docs/MODEL.md, "Track fusion: what more frames can give").
+FUSED_POOL_VOXEL = 0.02
 
 
 @dataclass(frozen=True)
@@ -64,6 +71,21 @@ def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None =
     return Merged(union[keep], np.where(keep < len(measured), keep, -1))
 
 
+def merge_with_pool(completion: np.ndarray, partial: np.ndarray, voxel: float = FUSED_POOL_VOXEL) -> Merged:
+    """`merge_measured` with one point per `voxel` voxel of a track's fused `partial` (normalised; the first in its
+    order, which lists the oldest frame first, so the pool changes little from frame to frame) instead of the
+    points the network saw: a fused partial holds many more measured points than the network's input size.
+    `Merged.measured_row` indexes `partial`."""
+    partial = np.asarray(partial, np.float32).reshape(-1, 3)
+    return _merge_rows(completion, partial, voxel_first_indices(partial, voxel))
+
+
+def _merge_rows(completion: np.ndarray, partial: np.ndarray, rows: np.ndarray) -> Merged:
+    """`merge_measured` with `partial[rows]`; `Merged.measured_row` indexes `partial`."""
+    merged = merge_measured(completion, partial[rows])
+    return Merged(merged.points, np.where(merged.is_measured, rows[np.maximum(merged.measured_row, 0)], -1))
+
+
 def merge_with_fed(completion: np.ndarray, partial: np.ndarray, num_input: int, rows: np.ndarray | None = None
                    ) -> Merged:
     """`merge_measured` with the measured points the network was fed: the rows of `partial` that
@@ -72,6 +94,4 @@ def merge_with_fed(completion: np.ndarray, partial: np.ndarray, num_input: int, 
     partial = np.asarray(partial, np.float32).reshape(-1, 3)
     if rows is None:
         rows = resample_indices(len(partial), partial, num_input)
-    rows = np.asarray(rows)[:min(len(partial), num_input)]
-    merged = merge_measured(completion, partial[rows])
-    return Merged(merged.points, np.where(merged.is_measured, rows[np.maximum(merged.measured_row, 0)], -1))
+    return _merge_rows(completion, partial, np.asarray(rows)[:min(len(partial), num_input)])

@@ -18,7 +18,7 @@ from gd_completion.errors import DeviceError
 from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask, normalize
 from gd_completion.limits import FrameLimits, screen_boxes
-from gd_completion.merge import merge_with_fed
+from gd_completion.merge import merge_with_fed, merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles, resample_indices
@@ -201,26 +201,30 @@ class VehicleCompleter:
                                                                     None)])
 
     def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None, merge: bool,
-                      deadline: float, cancel: threading.Event | None
+                      deadline: float, cancel: threading.Event | None, fused: Sequence[bool] | None = None
                       ) -> list[tuple[np.ndarray, np.ndarray] | None]:
-        """Each vehicle's (completion, measured rows) in order (`_complete_one`); None for those not started
-        before `deadline` (time.monotonic) or after `cancel` was set."""
+        """Each vehicle's (completion, measured rows) in order (`_complete_one`; `fused`: which partials are a
+        track's fused partial, none when None); None for those not started before `deadline` (time.monotonic) or
+        after `cancel` was set."""
         if sizes is not None and len(sizes) != len(partials):
             raise ValueError(f"{len(partials)} partial clouds but {len(sizes)} box sizes")
 
-        def one(item: tuple[np.ndarray, Sequence[float] | None]) -> tuple[np.ndarray, np.ndarray] | None:
+        def one(item: tuple[np.ndarray, Sequence[float] | None, bool]) -> tuple[np.ndarray, np.ndarray] | None:
             if time.monotonic() > deadline or (cancel is not None and cancel.is_set()):
                 return None
             return self._complete_one(*item, merge)
         run = self._pool.map if self._pool is not None else map
-        return list(run(one, zip(partials, sizes if sizes is not None else [None] * len(partials))))
+        count = len(partials)
+        return list(run(one, zip(partials, sizes if sizes is not None else [None] * count,
+                                 fused if fused is not None else [False] * count)))
 
-    def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, merge: bool
+    def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, fused: bool, merge: bool
                       ) -> tuple[np.ndarray, np.ndarray]:
         """Resample one vehicle to the network's input size (`preprocess.network_input`) and complete it (one
         task of the thread pool): (num_output, 3) float32 points in the normalised frame and, per point, the
         row of `partial` it copies (-1: generated); with `merge`, merged with the measured points the network
-        saw (`merge.merge_with_fed`), else all generated."""
+        saw (`merge.merge_with_fed`) or, for a track's `fused` partial, with one of its points per voxel
+        (`merge.merge_with_pool`), else all generated."""
         partial = np.asarray(partial, np.float32).reshape(-1, 3)
         rows = resample_indices(len(partial), partial, self.num_input)
         shape = box_shape([size]).to(self.device) if size is not None else None
@@ -229,7 +233,8 @@ class VehicleCompleter:
             completion = out.completion[0].float().cpu().numpy()
         if not merge:
             return completion, np.full(len(completion), -1, np.int64)
-        merged = merge_with_fed(completion, partial, self.num_input, rows)
+        merged = merge_with_pool(completion, partial) if fused else \
+            merge_with_fed(completion, partial, self.num_input, rows)
         return merged.points, merged.measured_row
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],
@@ -257,7 +262,7 @@ class VehicleCompleter:
             fusion.expire(stamp_ns)
             vehicles = fusion.update(stamp_ns, vehicles)
         completions = self._complete_all([v.normalized for v in vehicles], [v.box.size for v in vehicles], merge,
-                                         deadline, cancel)
+                                         deadline, cancel, [v.current_source is not None for v in vehicles])
         done = []
         budget = self.limits.max_output_points
         for vehicle, result in zip(vehicles, completions):

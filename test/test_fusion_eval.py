@@ -99,11 +99,12 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
             # the library oracle only at k = 5: the other chosen stationary vehicle's points beside the fused points
             assert math.isfinite(r.library_oracle) == (k == fusion_eval.RATIO_FRAMES)
             assert r.prior_fused > 0 and r.prior_single > 0 and math.isfinite(r.prior_ratio)
-    # one frame fused: the fused partial is that frame (TrackFusion voxel-thins it), both completions agree
+    # one frame fused: the fused partial is that frame (TrackFusion voxel-thins it), both completions agree but
+    # for the measured merge (the fused partial's voxel pool against the points fed to the network)
+    assert rows[1].fused_completion_single == pytest.approx(rows[1].single_completion, rel=0.1)
+    assert rows[1].ratio == pytest.approx(1.0, rel=0.1)
     tolerance = 1e-5 if factory is ConcatFusion else 0.1
-    assert rows[1].fused_completion_single == pytest.approx(rows[1].single_completion, rel=tolerance)
-    assert rows[1].ratio == pytest.approx(1.0, rel=tolerance)
-    assert rows[1].prior_ratio == pytest.approx(1.0, rel=tolerance)   # so do both priors
+    assert rows[1].prior_ratio == pytest.approx(1.0, rel=tolerance)   # the prior on the same points: the same
     # more frames of a parked car cover more of its aggregate
     raw = [rows[k].raw_fused for k in (1, 2, 5, 0)]
     assert raw[0] > raw[-1]

@@ -4,9 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gd_completion.merge import merge_measured, merge_with_fed, mirrored
+from gd_completion.fusion import voxel_first_indices
+from gd_completion.merge import FUSED_POOL_VOXEL, merge_measured, merge_with_fed, merge_with_pool, mirrored
 from gd_completion.model.kernels import FPS_LEAF, _fps_cloud, _morton_order, fps, fps_pruned
-from gd_completion.preprocess import network_input
+from gd_completion.preprocess import network_input, resample_indices
 
 
 def _plain_fps(xyz: np.ndarray, n: int) -> np.ndarray:
@@ -123,6 +124,33 @@ def test_merge_with_fed_rows_index_the_partial():
     assert 0 < len(kept) <= 128 and np.isin(dense[kept].view("f4,f4,f4"), fed.view("f4,f4,f4")).all()
     assert np.array_equal(merged.points[merged.is_measured], dense[kept])
     assert np.array_equal(mirrored(fed)[:, 1], -fed[:, 1])
+
+
+def test_merge_with_pool_keeps_one_fused_point_per_voxel_and_stays_put_as_frames_arrive():
+    rng = np.random.default_rng(2)
+    completion = rng.uniform(-0.5, 0.5, (2048, 3)).astype(np.float32) * np.array([1, 0.4, 0.3], np.float32)
+    side = lambda m: np.stack([rng.uniform(-0.5, 0.5, m), rng.normal(0.2, 0.003, m),   # noqa: E731
+                               rng.uniform(-0.15, 0.15, m)], 1).astype(np.float32)
+    fused = side(6000)                 # a track's fused partial: far more points than the network's 512
+    merged = merge_with_pool(completion, fused)
+    pool = voxel_first_indices(fused, FUSED_POOL_VOXEL)
+    kept = merged.measured_row[merged.is_measured]
+    assert np.array_equal(merged.points[merged.is_measured], fused[kept])   # exact copies, rows into the partial
+    fed_rows = resample_indices(len(fused), fused, 512)                       # what the network saw
+    assert len(pool) > 512 and np.isin(kept, pool).all() and not np.isin(kept, fed_rows).all()
+    # a new frame appended (the partial lists the oldest frame first): the old voxels keep their point
+    grown = np.concatenate([fused, side(3000)])
+    np.testing.assert_array_equal(voxel_first_indices(grown, FUSED_POOL_VOXEL)[:len(pool)], pool)
+
+
+@pytest.mark.parametrize("scale", [0.01, 1.0, 40.0, 1e6, 1e13])
+def test_voxel_first_indices_match_unique_voxel_rows(scale):
+    rng = np.random.default_rng(int(np.log10(scale)) + 20)
+    points = (rng.normal(size=(3000, 3)) * scale).astype(np.float32)
+    points = np.concatenate([points, points[::7]])       # repeats: their first occurrence counts
+    keys = np.floor(points.astype(np.float64) / 0.02)
+    expected = np.sort(np.unique(keys, axis=0, return_index=True)[1])   # huge spans take this path themselves
+    np.testing.assert_array_equal(voxel_first_indices(points, 0.02), expected)
 
 
 def test_merge_refuses_bad_input():
