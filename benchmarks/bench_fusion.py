@@ -1,4 +1,5 @@
-"""Track fusion's cost per vehicle and frame on PandaSet-002, with and without the alignment of each frame.
+"""Track fusion's cost per vehicle and frame on PandaSet-002, with and without the alignment of each frame, and
+the cost of the measured merge of a fused partial (its voxel pool) against that of a single frame (the fed points).
 
 Every vehicle track of the first --frames Pandar64 frames (cropped once, beforehand) is fed to a fresh
 `TrackFusion` frame after frame; the time of each `update` is divided by the vehicles it got. Alignment on
@@ -16,9 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from gd_completion.datasets.pandaset import PandaSetSequence
+from gd_completion.evaluation.baselines import network_outputs
 from gd_completion.evaluation.fusion_eval import load_frames, vehicle_tracks
 from gd_completion.fusion import FusionLimits, TrackFusion
-from gd_completion.preprocess import Preprocessing
+from gd_completion.merge import merge_with_fed, merge_with_pool
+from gd_completion.model.checkpoint import load_model
+from gd_completion.preprocess import Preprocessing, resample_indices
 from gd_completion.registration import align_planar
 
 PANDASET = Path(__file__).resolve().parents[2] / "shared" / "data" / "pandaset-002"
@@ -57,6 +61,35 @@ def main() -> None:
               f"alignment adds {on.mean() - off.mean():.3f} ms")
     print(f"frames aligned {counters['frames_aligned']}, alignments refused {counters['alignments_refused']} "
           "(fewer than 30 points or half of the frame matched, or beyond 0.3 m / 5 degrees)")
+    merge_costs(frames, args.rounds)
+
+
+def merge_costs(frames: list, rounds: int) -> None:
+    """The measured merge of each fused partial of the last frame: with its voxel pool (what the pipeline does for
+    a track) against the 512 points fed to the network (what it does for a single frame)."""
+    fusion = TrackFusion()
+    for stamp, vehicles in frames:
+        fused = fusion.update(stamp, vehicles)
+    model = load_model()
+    partials = [np.asarray(v.normalized, np.float32) for v in fused]
+    rows = [resample_indices(len(p), p, model.config.num_input) for p in partials]
+    _, completions = network_outputs(model, np.stack([p[r] for p, r in zip(partials, rows)]),
+                                     [v.box.size for v in fused])
+    merge_with_pool(completions[0], partials[0])   # compile
+    sizes = np.array([len(p) for p in partials])
+    print(f"measured merge of the {len(partials)} fused partials of the last frame ({np.median(sizes):.0f} points "
+          f"median, {sizes.max()} max), ms per vehicle:")
+    for r in range(rounds):
+        start = time.perf_counter()
+        for partial, completion in zip(partials, completions):
+            merge_with_pool(completion, partial)
+        pool = (time.perf_counter() - start) * 1e3 / len(partials)
+        start = time.perf_counter()
+        for partial, completion, fed in zip(partials, completions, rows):
+            merge_with_fed(completion, partial, model.config.num_input, fed)
+        fed_ms = (time.perf_counter() - start) * 1e3 / len(partials)
+        print(f"round {r + 1}: voxel pool {pool:.3f}   the 512 fed points {fed_ms:.3f}   pool / fed "
+              f"{pool / fed_ms:.2f}")
 
 
 if __name__ == "__main__":
