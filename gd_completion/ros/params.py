@@ -106,8 +106,9 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "include_input_points": (True, "Also publish the measured points of each completed vehicle (generated=0); "
                                    "without them, a merged completion's own measured points still carry "
                                    "generated=0.", {}),
-    "measured_merge": (True, "Thin each completion together with the measured points fed to the network and their "
-                             "mirror image (measured points replace network points where they lie densely).", {}),
+    "measured_merge": (True, "Thin each completion together with the measured points fed to the network (a track's "
+                             "fused partial: one point per 2 % voxel) and their mirror image (measured points "
+                             "replace network points where they lie densely).", {}),
     # per-frame work limits (gd_completion.limits.FrameLimits); every skip is a counter in /diagnostics
     "max_boxes": (_LIMITS.max_boxes, "Boxes completed per frame at most, nearest first; the rest are skipped "
                                      "(too_many_boxes).", _int(1, 100000)),
