@@ -71,12 +71,14 @@ def voxel_first_indices(points: np.ndarray, voxel_size: float) -> np.ndarray:
     all finite."""
     if len(points) == 0:
         return np.zeros(0, np.intp)
-    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel_size)   # integer-valued, no overflow
-    keys -= keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    if float(np.prod(span)) >= 2.0 ** 62:   # one integer code per voxel would overflow: unique rows instead
+    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel_size)   # integer-valued floats
+    low = keys.min(axis=0)
+    span = keys.max(axis=0) - low + 1
+    if np.abs(keys).max() >= 2.0 ** 52 or float(np.prod(span)) >= 2.0 ** 62:
+        # keys beyond exact float64 integers, or one integer code per voxel would overflow: unique rows
         return np.sort(np.unique(keys, axis=0, return_index=True)[1])
-    code = keys.astype(np.int64) @ np.array([span[1] * span[2], span[2], 1], np.int64)
+    shifted, strides = (keys - low).astype(np.int64), span.astype(np.int64)
+    code = (shifted[:, 0] * strides[1] + shifted[:, 1]) * strides[2] + shifted[:, 2]
     return np.sort(np.unique(code, return_index=True)[1])
 
 

@@ -11,7 +11,7 @@ from test_preprocess import Recording
 from gd_completion.fusion import FusionLimits, TrackFusion, voxel_downsample
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
-from gd_completion.pipeline import VehicleCompleter
+from gd_completion.pipeline import FrameStats, VehicleCompleter
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
 
 SIZE = (4.5, 1.8, 1.5)
@@ -299,6 +299,31 @@ def test_pipeline_completes_a_track_from_its_fused_partial() -> None:
     for field in ("points", "instance_id", "label", "generated"):
         assert getattr(a, field).tobytes() == getattr(b, field).tobytes()
     assert fusion.counters["tracks_alive"] == 1
+
+
+def test_untracked_vehicles_are_merged_as_single_frames() -> None:
+    """With fusion on, a vehicle without a track id is merged with the points fed to the network, as without
+    fusion; a track with its fused partial's voxel pool (also checked by test_own_points_...)."""
+    from gd_completion.geometry import denormalize
+
+    model = load_model(DEFAULT_WEIGHTS)
+    prep = Preprocessing(ground_clearance=0.0)
+    points, box = moving_track(frames=1, spacing=0.05)[0]
+    for iid, pooled in ((-1, False), (box.instance_id, True)):
+        completer = VehicleCompleter(model, preprocessing=prep, fusion=TrackFusion(), include_input_points=False)
+        tracked = replace(box, instance_id=iid)
+        (own,) = completer.prepare(points, [tracked], FrameStats())
+        assert len(own.measured) > model.config.num_input
+        result = completer.complete_frame(points, [tracked], stamp_ns=SECOND)
+        partial = own.normalized if not pooled else TrackFusion().update(SECOND, [own])[0].normalized
+        by_rule = {rule: denormalize(completer._complete_one(partial, box.size, rule, True)[0], box)
+                   for rule in (False, True)}
+        assert not np.allclose(by_rule[False], by_rule[True], atol=1e-3)   # the two merges differ here
+        if not pooled:
+            np.testing.assert_allclose(result.points, by_rule[False], atol=1e-4)
+        else:   # a track's own points are published where this frame measured them: compare the others
+            generated = result.generated == 1
+            np.testing.assert_allclose(result.points[generated], by_rule[True][generated], atol=1e-4)
 
 
 @pytest.mark.parametrize("include", [True, False])

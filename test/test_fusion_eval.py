@@ -128,6 +128,25 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
     assert math.isfinite(stationary.single_network) and stationary.single_network != stationary.single
 
 
+def test_fused_partials_are_scored_as_the_pipeline_merges_them(shared_data, monkeypatch):
+    root = shared_data / "pandaset-002"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    calls = []
+    scored = fusion_eval.published_outputs
+
+    def recording(model, partials, sizes=None, max_batch=32, fused=False):
+        calls.append((fused, len(partials)))
+        return scored(model, partials, sizes, max_batch=max_batch, fused=fused)
+
+    monkeypatch.setattr(fusion_eval, "published_outputs", recording)
+    torch.manual_seed(0)
+    fusion_eval.evaluate_fusion(GGDNet(TINY).eval(), root, frames=range(0, 3), max_frames=3, consistency_frames=2,
+                                max_vehicles=1, reference_points=256)
+    assert sorted(fused for fused, _ in calls) == [False, True]   # once the fused partials, once the frames alone
+    assert all(count > 0 for _, count in calls)
+
+
 def test_fusion_section_text():
     from gd_completion.evaluation.report import fusion_section
 

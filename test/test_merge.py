@@ -153,6 +153,17 @@ def test_voxel_first_indices_match_unique_voxel_rows(scale):
     np.testing.assert_array_equal(voxel_first_indices(points, 0.02), expected)
 
 
+def test_voxel_first_indices_at_the_edges_of_exact_integer_keys():
+    # spans whose product of strides a float64 would round (2**27 + 1 and 2**27 + 5 voxels), and keys beyond 2**53
+    wide = np.array([[0, 0, 0], [1, 0, 0], [0, 2 ** 27, 2 ** 27 + 4]], np.float64)   # codes 2**54 + 6 * 2**27 + 4
+    huge = np.array([[-(2.0 ** 60), 0, 0], [0, 0, 0], [1, 0, 0]])
+    for points in (wide, huge):
+        keys = np.floor(points / 1.0)
+        expected = np.sort(np.unique(keys, axis=0, return_index=True)[1])
+        np.testing.assert_array_equal(voxel_first_indices(points, 1.0), expected)
+    assert len(voxel_first_indices(huge, 1.0)) == 3 and len(voxel_first_indices(wide, 1.0)) == 3
+
+
 def test_merge_refuses_bad_input():
     with pytest.raises(ValueError, match="cannot keep 100"):
         merge_measured(np.zeros((10, 3), np.float32), np.zeros((5, 3), np.float32), 100)
