@@ -22,12 +22,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gd_completion.evaluation.baselines import published_outputs
-from gd_completion.evaluation.fusion_eval import fuse_drive
+from gd_completion.evaluation.baselines import mirror_symmetry, published_outputs
+from gd_completion.evaluation.fusion_eval import fuse_drive, shape_library, stretched
 from gd_completion.evaluation.metrics import COVERAGE_SCALE, nearest_sq_distance
 from gd_completion.evaluation.pandaset_eval import REFERENCE_POINTS, multi_frame_reference
-from gd_completion.evaluation.priors import box_fill, thinned_union
-from gd_completion.merge import mirrored
+from gd_completion.evaluation.priors import box_fill, mirror_template, thinned_union
 from gd_completion.model.checkpoint import load_checkpoint
 
 PANDASET = Path(__file__).resolve().parents[2] / "shared" / "data" / "pandaset-002"
@@ -48,9 +47,8 @@ def regions(reference: np.ndarray, size: np.ndarray) -> np.ndarray:
 
 def retrieved(fused: np.ndarray, size: np.ndarray, library: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     """The fused points, their mirror and the library shape (stretched to `size`) nearest the fused points."""
-    stretched = [shape * ((size / size[0]) / (s / s[0])).astype(np.float32) for shape, s in library]
-    best = min(stretched, key=lambda shape: float(squared(fused, shape).mean()))
-    return thinned_union([fused, mirrored(fused), best])
+    shapes = [stretched(shape, shape_size, size) for shape, shape_size in library]
+    return mirror_template(fused, size, template=min(shapes, key=lambda shape: float(squared(fused, shape).mean())))
 
 
 def main() -> None:
@@ -66,8 +64,7 @@ def main() -> None:
     drive = fuse_drive(args.root, preprocessing=preprocessing)
     stationary = [t for t in drive.tracks.values() if t.stationary]
     references = {t.instance_id: multi_frame_reference(t, REFERENCE_POINTS) for t in stationary}
-    library = {i: (r, np.median(np.array(drive.tracks[i].sizes), axis=0)) for i, r in references.items()
-               if r is not None}
+    library = shape_library(drive.tracks, references)
     chosen = [t for t in stationary if t.instance_id in library and len(t.frames) >= args.k
               and t.usable(args.k - 1)]
     p = args.k - 1
@@ -91,7 +88,7 @@ def main() -> None:
     unseen, share = [], {}
     for t, f, s in zip(chosen, fused, sizes):
         reference = references[t.instance_id]
-        hidden = squared(reference, np.concatenate([f, mirrored(f)])) > args.radius ** 2
+        hidden = squared(reference, mirror_symmetry(f)) > args.radius ** 2
         unseen.append(hidden)
         for region in ("end", "roof", "floor", "side"):
             share[region] = share.get(region, 0) + (hidden & (regions(reference, s) == region)).sum()

@@ -11,7 +11,6 @@ import numpy as np
 
 from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_sensor
 from gd_completion.geometry import box_problem, finite_mask
-from gd_completion.merge import mirrored
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
 
@@ -25,7 +24,7 @@ from .pandaset_eval import (
     multi_frame_reference,
     stationary_vehicles,
 )
-from .priors import PRIOR_POINTS, mirror_template, thinned_union
+from .priors import PRIOR_POINTS, mirror_template
 
 # Fused frames after which coverage is reported; "all" (0 here) = every fused frame up to the cap.
 FUSED_FRAMES: tuple[int, ...] = (1, 2, 5, 10, 20, 40, 0)
@@ -172,14 +171,23 @@ def library_oracle(reference: np.ndarray, measured: np.ndarray, size: Sequence[f
     library shape, thinned to `n` points by farthest point sampling", chosen knowing `reference`: an oracle, not
     a method. Each library entry is a vehicle's points (normalised by its own box) and its box size, stretched
     per axis to `size`; NaN for an empty library."""
-    size = np.asarray(size, np.float64)
     measured = np.asarray(measured, np.float32).reshape(-1, 3)
-    errors = []
-    for shape, shape_size in library:
-        shape_size = np.asarray(shape_size, np.float64)
-        fitted = np.asarray(shape, np.float32) * ((size / size[0]) / (shape_size / shape_size[0])).astype(np.float32)
-        errors.append(float(coverage_error(reference, thinned_union([measured, mirrored(measured), fitted], n))))
+    errors = [float(coverage_error(reference, mirror_template(measured, size, n, stretched(shape, shape_size, size))))
+              for shape, shape_size in library]
     return min(errors, default=float("nan"))
+
+
+def stretched(shape: np.ndarray, shape_size: Sequence[float], size: Sequence[float]) -> np.ndarray:
+    """(M, 3) float32: a vehicle's points, normalised by its own box of `shape_size`, stretched per axis to the
+    normalised frame of a box of `size` (both (length, width, height))."""
+    size, shape_size = np.asarray(size, np.float64), np.asarray(shape_size, np.float64)
+    return np.asarray(shape, np.float32) * ((size / size[0]) / (shape_size / shape_size[0])).astype(np.float32)
+
+
+def shape_library(tracks: dict[int, FusedTrack], references: dict[int, np.ndarray | None]
+                  ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Instance id -> (reference, median box size) of every track with a reference: `library_oracle`'s shapes."""
+    return {i: (r, np.median(np.array(tracks[i].sizes), axis=0)) for i, r in references.items() if r is not None}
 
 
 def vehicle_tracks(sequence: PandaSetSequence, sensor: int = PANDAR64) -> dict[str, tuple[str, bool]]:
@@ -326,7 +334,7 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
                      "no frame was aligned to its track (alignment off: frames stored as their boxes place them)")
     references = {i: multi_frame_reference(t, reference_points) for i, t in chosen.items() if plans[i][0]}
     single_only = sum(r is None for r in references.values())
-    library = {i: (r, np.median(np.array(chosen[i].sizes), axis=0)) for i, r in references.items() if r is not None}
+    library = shape_library(chosen, references)
     per_k: dict[int, list[tuple[float, ...]]] = {k: [] for k in FUSED_FRAMES}
     for i, (cover, _) in plans.items():
         track, reference = chosen[i], references.get(i)
