@@ -18,24 +18,22 @@ tmp=$(mktemp -d) || exit 2
 trap 'git worktree remove --force "$tmp/a" >/dev/null 2>&1; git worktree remove --force "$tmp/b" >/dev/null 2>&1; rm -rf "$tmp"' EXIT
 git worktree add --detach "$tmp/a" "$1" >/dev/null 2>&1 || { echo "!! no such revision: $1"; exit 2; }
 git worktree add --detach "$tmp/b" "$2" >/dev/null 2>&1 || { echo "!! no such revision: $2"; exit 2; }
-case $mode in node) what="bench_node.py, 20 vehicles" ;; frame) what="bench_node.py --offline 20" ;; *) what="bench_model.py" ;; esac
+# per mode: what it runs, the script (node: each commit's own; else this checkout's), its rows, the row title
+case $mode in
+  node) what="bench_node.py, 20 vehicles"; script=benchmarks/bench_node.py; args=""
+        rows="answered|end-to-end|processing time"; title="node, 20 vehicles" ;;
+  frame) what="bench_node.py --offline 20"; script="$root/benchmarks/bench_node.py"; args="--offline 20"
+         rows="^frame"; title="node core, 20-vehicle frame" ;;
+  *) what="bench_model.py"; script="$root/benchmarks/bench_model.py"; args=""
+     rows="^(batch|16-vehicle)"; title="model" ;;
+esac
 echo "# A/B of the code of $1 ($(git rev-parse --short "$1")) and $2 ($(git rev-parse --short "$2")), alternating, $rounds rounds ($what), $(date -u +%FT%TZ)"
 for round in $(seq "$rounds"); do
   for side in a b; do
     rev=$([ "$side" = a ] && echo "$1" || echo "$2")
-    case $mode in
-      node)
-        echo "## node, 20 vehicles, $rev, round $round"
-        (cd "$tmp/$side" && PYTHONPATH="$tmp/$side${PYTHONPATH:+:$PYTHONPATH}" "$py" benchmarks/bench_node.py 2>&1) \
-          | grep -E "answered|end-to-end|processing time" || echo "!! bench_node.py failed" ;;
-      frame)
-        echo "## node core, 20-vehicle frame, $rev, round $round"
-        (cd "$tmp/$side" && PYTHONPATH="$tmp/$side${PYTHONPATH:+:$PYTHONPATH}" "$py" "$root/benchmarks/bench_node.py" --offline 20 2>&1) \
-          | grep -E "^frame" || echo "!! bench_node.py --offline failed" ;;
-      *)
-        echo "## model, $rev, round $round"
-        (cd "$tmp/$side" && PYTHONPATH="$tmp/$side${PYTHONPATH:+:$PYTHONPATH}" "$py" "$root/benchmarks/bench_model.py" 2>&1) \
-          | grep -E "^(batch|16-vehicle)" || echo "!! bench_model.py failed" ;;
-    esac
+    echo "## $title, $rev, round $round"
+    # shellcheck disable=SC2086  # args: words on purpose
+    (cd "$tmp/$side" && PYTHONPATH="$tmp/$side${PYTHONPATH:+:$PYTHONPATH}" "$py" "$script" $args 2>&1) \
+      | grep -E "$rows" || echo "!! $what failed"
   done
 done
