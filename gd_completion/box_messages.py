@@ -24,6 +24,7 @@ class BoxSet:
     stamp_ns: int | None  # None when the message carries no header (an empty MarkerArray)
     boxes: tuple[Box3D, ...]
     frame_ids: tuple[str, ...]
+    decode_s: float = 0.0  # seconds its conversion from the message took (counted in the frame's processing time)
 
     def split_by_frame(self, frame_id: str) -> tuple[list[Box3D], int]:
         """Boxes given in `frame_id`, and how many were in another frame (no tf here: those are skipped)."""
@@ -53,6 +54,11 @@ def _box(pose: Any, size: Any, label: str, instance_id: int) -> Box3D:
     p, q = pose.position, pose.orientation
     return Box3D(center=(p.x, p.y, p.z), size=(size.x, size.y, size.z),
                  yaw=yaw_from_quaternion(q.x, q.y, q.z, q.w), label=label, instance_id=instance_id)
+
+
+def box_count(msg: Any) -> int:
+    """Boxes (markers or detections) in a boxes message, read before converting it."""
+    return len(msg.markers) if hasattr(msg, "markers") else len(msg.detections)
 
 
 def markers_to_boxes(msg: Any, class_map: Mapping[str, str] | None = None) -> BoxSet:

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gd_completion.association import BoxAssociator, track_identity
 from gd_completion.errors import DeviceError
 from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask, normalize
@@ -22,6 +23,7 @@ from gd_completion.merge import merge_with_fed, merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles, resample_indices
+from gd_completion.reuse import CachedCompletion, CompletionCache, Decision, ReuseSettings
 
 LABEL_IDS: dict[str, int] = {"car": 1, "van": 2, "truck": 3}
 DEFAULT_LABELS: tuple[str, ...] = ("car", "van", "truck")
@@ -41,6 +43,9 @@ class FrameStats:
     skipped_boxes: list[tuple[Box3D, str]] = field(default_factory=list)   # each skipped box and its reason
     nonfinite_points: int = 0
     ignored_labels: int = 0
+    completions_run: int = 0       # vehicles the network completed this frame
+    completions_reused: int = 0    # vehicles published from their track's cached completion (`reuse`)
+    completions_deferred: int = 0  # of those, due for a re-run but left to a later frame by the budget
 
     @property
     def skipped_total(self) -> int:
@@ -115,6 +120,8 @@ class VehicleCompleter:
         fusion: TrackFusion | None = None,
         publish_fused_points: bool = False,
         measured_merge: bool = True,
+        track_ids: str = "message",
+        reuse: ReuseSettings | None = None,
     ) -> None:
         self.model = model.to(device).eval()
         self.device = torch.device(device)
@@ -125,6 +132,10 @@ class VehicleCompleter:
         self.fusion = fusion
         self.publish_fused_points = bool(publish_fused_points)
         self.measured_merge = bool(measured_merge)
+        track_identity(track_ids, [], None, None)   # ValueError for an unknown mode
+        self.track_ids = track_ids
+        self.associator = BoxAssociator()
+        self.cache = CompletionCache(reuse) if reuse is not None else None
         self.num_input = model.config.num_input
         self.num_output = model.config.num_output
         if threads < 1:
@@ -243,47 +254,41 @@ class VehicleCompleter:
         cloud's frame, vehicles in the output in the order of `boxes`. Vehicles not started when the time
         budget is spent, or once `cancel` is set, are skipped and counted (`time_budget`, `cancelled`).
 
-        With `fusion` set and `stamp_ns` given, each tracked vehicle is completed from its track's fused
-        partial (all of its frames so far, `fusion.TrackFusion`); with `publish_fused_points` its measured
-        output points are the fused ones too.
+        With `stamp_ns` given (a stream's frames in stamp order): the boxes get the track ids of `track_ids`
+        (`association`); with `fusion` set, each tracked vehicle is completed from its track's fused partial
+        (all of its frames so far, `fusion.TrackFusion`; with `publish_fused_points` its measured output points
+        are the fused ones too); with `cache` set (reuse), a tracked vehicle's network completion runs only when
+        due (`reuse.CompletionCache.decide`), the due ones most urgent first within `cache.settings.budget_s`,
+        and every other one is published from its cache (a vehicle never completed and over the budget is
+        skipped: `deferred`).
 
         Per vehicle the output holds its measured points (`include_input_points`; generated=0) and its
         completion's points (generated=1). With `measured_merge` the completion holds some of the measured
         points: those are published once, with generated=0 (left out of the completion when the measured
         points are published; without them, they keep this frame's measured coordinates, not those of the
         track's placement); with track fusion but without `publish_fused_points`, the completion's points from
-        the track's earlier frames count as generated=1. The settings are read once per frame."""
+        the track's earlier frames count as generated=1, as do a reused completion's measured points when the
+        measured points are not published. The settings are read once per frame."""
         stats = FrameStats()
         deadline = time.monotonic() + self.limits.time_budget_s
-        include, merge, fused_points = self.include_input_points, self.measured_merge, self.publish_fused_points
+        include = self.include_input_points
+        given = list(boxes)
+        boxes = self._with_track_ids(given, stamp_ns)
         vehicles = self.prepare(points, boxes, stats)
         fusion = self.fusion if stamp_ns is not None else None
         if fusion is not None:
             fusion.expire(stamp_ns)
             vehicles = fusion.update(stamp_ns, vehicles)
-        completions = self._complete_all([v.normalized for v in vehicles], [v.box.size for v in vehicles], merge,
-                                         deadline, cancel, [v.current_source is not None for v in vehicles])
+        outputs = self._completions(vehicles, stamp_ns, deadline, cancel, stats, include)
         done = []
         budget = self.limits.max_output_points
-        for vehicle, result in zip(vehicles, completions):
-            if result is None:
-                stats.skip(vehicle.box, "cancelled" if cancel is not None and cancel.is_set() else "time_budget")
+        for vehicle, output in zip(vehicles, outputs):
+            if output is None:
                 continue
-            completion, row = result
-            # the rows of the partial that are this frame's measured points (all of them but with fusion: its last)
-            own_from = 0 if fused_points or vehicle.current_rows is None \
-                else len(vehicle.normalized) - vehicle.current_rows
-            own = row >= own_from
-            if include:   # published below with the measured points
-                completion, own = completion[~own], own[~own]
-            elif vehicle.current_source is not None and not fused_points and own.any():
-                # this frame's points where it measured them, not where its track placed them
-                completion = completion.copy()
-                completion[own] = normalize(vehicle.measured[vehicle.current_source[row[own] - own_from]], vehicle.box)
-            source = np.where(own, 0, 1).astype(np.uint8)
+            completion, source = output
             if not include:
                 measured = np.zeros((0, 3), np.float32)
-            elif fusion is not None and fused_points:
+            elif fusion is not None and self.publish_fused_points:
                 measured = fusion.fused_measured(vehicle)
             else:
                 measured = vehicle.measured
@@ -292,6 +297,106 @@ class VehicleCompleter:
                 continue
             budget -= len(measured) + len(completion)
             done.append((vehicle, measured, completion, source))
+        return self._assemble(boxes, done, stats, {id(b): g.instance_id for b, g in zip(boxes, given)})
+
+    def _with_track_ids(self, boxes: Sequence[Box3D], stamp_ns: int | None) -> list[Box3D]:
+        """`boxes` with the track ids of `track_ids` given to the boxes that will be completed (label and geometry
+        usable); the others as they are. The track ids key fusion and reuse; the output keeps the given ids."""
+        boxes = list(boxes)
+        if self.track_ids == "message" or (self.track_ids == "associate" and stamp_ns is None):
+            return boxes
+        usable = [i for i, box in enumerate(boxes) if box.label in self.labels and box_problem(box) is None]
+        for i, box in zip(usable, track_identity(self.track_ids, [boxes[i] for i in usable], stamp_ns,
+                                                 self.associator)):
+            boxes[i] = box
+        return boxes
+
+    def _completions(self, vehicles: Sequence[CroppedVehicle], stamp_ns: int | None, deadline: float,
+                     cancel: threading.Event | None, stats: FrameStats, include: bool
+                     ) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        """Per vehicle, its completion (normalised) and per point its `generated` flag, or None when it is skipped
+        (counted in `stats`): the network's for the vehicles due (all of them without reuse), the cached one for
+        the others."""
+        cache = self.cache if stamp_ns is not None else None
+        decisions = self._decisions(vehicles, stamp_ns, cache)
+        due = [i for i, d in enumerate(decisions) if d.due]
+        run_deadline = deadline
+        if cache is not None:
+            # never completed first (nearest first), then the most urgent, nearer ones first among equals
+            due.sort(key=lambda i: (decisions[i].cached is not None,
+                                    -decisions[i].urgency * _nearness(vehicles[i].box), i))
+            run_deadline = min(deadline, time.monotonic() + cache.settings.budget_s)
+        results = self._complete_all([vehicles[i].normalized for i in due], [vehicles[i].box.size for i in due],
+                                     self.measured_merge, run_deadline, cancel,
+                                     [vehicles[i].current_source is not None for i in due])
+        ran = dict(zip(due, results))
+        cancelled = cancel is not None and cancel.is_set()
+        outputs: list[tuple[np.ndarray, np.ndarray] | None] = []
+        for i, (vehicle, decision) in enumerate(zip(vehicles, decisions)):
+            result = ran.get(i)
+            if result is not None:
+                stats.completions_run += 1
+                if cache is not None and vehicle.box.instance_id >= 0:
+                    cache.store(vehicle.box.instance_id, stamp_ns, vehicle.box.size, result[0], result[1] >= 0,
+                                vehicle.normalized)
+                outputs.append(self._fresh_output(vehicle, *result, include))
+            elif decision.cached is not None and not cancelled:
+                stats.completions_reused += 1
+                stats.completions_deferred += decision.due
+                outputs.append(self._cached_output(decision.cached, include))
+            else:
+                reason = "cancelled" if cancelled else "time_budget" if time.monotonic() > deadline else "deferred"
+                stats.skip(vehicle.box, reason)
+                outputs.append(None)
+        return outputs
+
+    def _decisions(self, vehicles: Sequence[CroppedVehicle], stamp_ns: int | None,
+                   cache: CompletionCache | None) -> list[Decision]:
+        """Per vehicle: is its network completion due (always without a cache, a track id or for a repeated id)."""
+        always = Decision(True, math.inf, "none", None)
+        if cache is None:
+            return [always] * len(vehicles)
+        cache.expire(stamp_ns)
+        seen: set[int] = set()
+        out = []
+        for vehicle in vehicles:
+            key = vehicle.box.instance_id
+            if key < 0 or key in seen:
+                out.append(always)
+                continue
+            seen.add(key)
+            current = vehicle.normalized if vehicle.current_rows is None \
+                else vehicle.normalized[len(vehicle.normalized) - vehicle.current_rows:]
+            out.append(cache.decide(key, stamp_ns, vehicle.box.size, current))
+        return out
+
+    def _fresh_output(self, vehicle: CroppedVehicle, completion: np.ndarray, row: np.ndarray, include: bool
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """A network completion as published: (points, generated flags), normalised by the vehicle's box."""
+        # the rows of the partial that are this frame's measured points (all of them but with fusion: its last)
+        own_from = 0 if self.publish_fused_points or vehicle.current_rows is None \
+            else len(vehicle.normalized) - vehicle.current_rows
+        own = row >= own_from
+        if include:   # published with the measured points
+            completion, own = completion[~own], own[~own]
+        elif vehicle.current_source is not None and not self.publish_fused_points and own.any():
+            # this frame's points where it measured them, not where its track placed them
+            completion = completion.copy()
+            completion[own] = normalize(vehicle.measured[vehicle.current_source[row[own] - own_from]], vehicle.box)
+        return completion, np.where(own, 0, 1).astype(np.uint8)
+
+    def _cached_output(self, cached: CachedCompletion, include: bool) -> tuple[np.ndarray, np.ndarray]:
+        """A cached completion as published: with the measured points published, its points that were measured
+        when it was made are left out (this frame's measured points take their place); else all of them,
+        generated=1 (they are not this frame's measurements)."""
+        points = cached.points[~cached.measured] if include else cached.points
+        return points, np.ones(len(points), np.uint8)
+
+    def _assemble(self, boxes: Sequence[Box3D],
+                  done: list[tuple[CroppedVehicle, np.ndarray, np.ndarray, np.ndarray]],
+                  stats: FrameStats, published_ids: dict[int, int]) -> FrameCompletion:
+        """The frame's output: per vehicle (in the order of `boxes`) its measured points, then its completion placed
+        by its box; `instance_id` from `published_ids` (by `id()` of the box: the id the caller gave it)."""
         order = {id(box): i for i, box in enumerate(boxes)}
         done.sort(key=lambda item: order.get(id(item[0].box), 0))
         parts: list[np.ndarray] = []
@@ -302,7 +407,7 @@ class VehicleCompleter:
             generated = denormalize(completion, vehicle.box).astype(np.float32)
             count = len(measured) + len(generated)
             parts += [measured, generated]
-            ids.append(np.full(count, vehicle.box.instance_id, np.int32))
+            ids.append(np.full(count, published_ids.get(id(vehicle.box), vehicle.box.instance_id), np.int32))
             labels.append(np.full(count, LABEL_IDS.get(vehicle.box.label, 0), np.uint8))
             flags += [np.zeros(len(measured), np.uint8), source]
         stats.completed = len(done)
@@ -311,3 +416,8 @@ class VehicleCompleter:
                                    np.zeros(0, np.uint8), np.zeros(0, np.uint8), stats)
         return FrameCompletion(np.concatenate(parts).astype(np.float32, copy=False), np.concatenate(ids),
                                np.concatenate(labels), np.concatenate(flags), stats)
+
+
+def _nearness(box: Box3D) -> float:
+    """Scheduling weight of a box: 1 at the sensor, 0.5 at 20 m (cloud frame origin)."""
+    return 1.0 / (1.0 + math.hypot(box.center[0], box.center[1]) / 20.0)

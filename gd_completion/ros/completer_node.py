@@ -25,7 +25,8 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64, Header
 from visualization_msgs.msg import MarkerArray
 
-from gd_completion.box_messages import BoxSet, detections_to_boxes, markers_to_boxes
+from gd_completion.association import AssociationSettings, BoxAssociator
+from gd_completion.box_messages import BoxSet, box_count, detections_to_boxes, markers_to_boxes
 from gd_completion.errors import GDCompletionError, PointCloud2Error
 from gd_completion.fusion import FusionLimits, TrackFusion
 from gd_completion.pipeline import VehicleCompleter, completion_to_structured
@@ -52,7 +53,7 @@ STOP_TIMEOUT_S = 1.5        # the worker stops between vehicles; the node exits 
 LARGE_CLOUD_BYTES = 1 << 20  # clouds above this get lost over Fast DDS's default transports
 SIM_CLOCK_GRACE_S = 3.0
 # Skips of normal operation (distant vehicles, a slow model): logged once, then only counted.
-ROUTINE_CAUSES = frozenset({"too_few_points", "superseded", "no_subscribers"})
+ROUTINE_CAUSES = frozenset({"too_few_points", "superseded", "no_subscribers", "deferred"})
 # Counters always present in the diagnostics, so a consumer can rely on the keys.
 COUNTER_KEYS = (
     "clouds_received", "boxes_received", "frames_published", "vehicles_completed", "ignored_labels",
@@ -60,6 +61,8 @@ COUNTER_KEYS = (
     "skipped_implausible_box", "skipped_duplicate_box", "skipped_too_many_boxes", "skipped_too_many_points",
     "skipped_output_limit", "skipped_time_budget",
     "bad_cloud", "nonfinite_points", "drop_superseded", "frames_without_subscribers", "errors",
+    "completions_run", "completions_reused", "completions_deferred", "skipped_deferred",
+    "skipped_box_message_too_large",
 )
 PROCESSING_TIME_TOPIC = "~/debug/processing_time_ms"
 
@@ -95,7 +98,9 @@ class CompleterNode(Node):
         self.params: CompleterParams = read_parameters(self)
         p = self.params
         self.completer = completer or VehicleCompleter.from_checkpoint(
-            p.model_path or None, device=p.device, num_threads=p.num_threads or None, labels=p.labels)
+            p.model_path or None, device=p.device, num_threads=p.num_threads or None, labels=p.labels,
+            track_ids=p.track_ids, reuse=p.reuse)
+        self.completer.associator = BoxAssociator(AssociationSettings(max_distance=p.association_max_distance))
         self._checkpoint_preprocessing = self.completer.preprocessing
         if p.track_fusion:
             self.completer.fusion = TrackFusion(FusionLimits(max_tracks=p.fusion_max_tracks,
@@ -208,6 +213,13 @@ class CompleterNode(Node):
 
     def _on_boxes(self, msg: Any) -> None:
         self._count("boxes_received")
+        started = time.perf_counter()
+        count = box_count(msg)
+        if count > self.params.max_boxes_per_message:
+            self._count("skipped_box_message_too_large")
+            self._warn("box_message_too_large", f"refused a boxes message on {self.params.boxes_topic} with {count} "
+                       f"boxes (max_boxes_per_message {self.params.max_boxes_per_message}) before converting it")
+            return
         try:
             boxes = self._to_boxes(msg, self.params.class_map)
         except (GDCompletionError, TypeError, ValueError) as exc:
@@ -220,6 +232,7 @@ class CompleterNode(Node):
                        f"skipping an empty MarkerArray on {self.params.boxes_topic}: it has no header to pair by "
                        "stamp (publish a DELETEALL marker with the frame's header for frames without vehicles)")
             return
+        boxes = replace(boxes, decode_s=time.perf_counter() - started)
         self._offer(self.sync.add_boxes(boxes.stamp_ns, boxes, time.monotonic_ns()))
 
     def _on_timer(self) -> None:
@@ -272,13 +285,16 @@ class CompleterNode(Node):
         if self._stopping.is_set():
             return
         self._output_pub.publish(msg)
-        self._time_pub.publish(Float64(data=(time.perf_counter() - started) * 1e3))
+        self._time_pub.publish(Float64(data=(time.perf_counter() - started + pair.boxes.decode_s) * 1e3))
         done = time.monotonic()
         with self._lock:
             self.counts["frames_published"] += 1
             self.counts["vehicles_completed"] += stats.completed
             self.counts["ignored_labels"] += stats.ignored_labels
             self.counts["nonfinite_points"] += stats.nonfinite_points
+            self.counts["completions_run"] += stats.completions_run
+            self.counts["completions_reused"] += stats.completions_reused
+            self.counts["completions_deferred"] += stats.completions_deferred
             for reason, n in stats.skipped.items():
                 self.counts[f"skipped_{reason}"] += n
             self._latencies.append(done - ready_at)
@@ -302,6 +318,10 @@ class CompleterNode(Node):
         values["drop_stale"] = self._slot.stale
         if self.completer.fusion is not None:
             values.update(self.completer.fusion.counters)
+        if self.params.track_ids == "associate":
+            values.update(self.completer.associator.counters)
+        if self.completer.cache is not None:
+            values["reuse_cached_tracks"] = len(self.completer.cache)
         return values
 
     def _publish_diagnostics(self) -> None:

@@ -9,11 +9,13 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 
+from gd_completion.association import TRACK_ID_MODES, AssociationSettings
 from gd_completion.box_messages import parse_class_map
 from gd_completion.errors import BoxError, GDCompletionError
 from gd_completion.fusion import FusionLimits
 from gd_completion.limits import FrameLimits
 from gd_completion.pipeline import LABEL_IDS
+from gd_completion.reuse import ReuseSettings
 from gd_completion.stamp_sync import FRESH_FRAME_AGE_S, SYNC_MAX_WAIT_S, SYNC_QUEUE_SIZE, SYNC_TOLERANCE_S
 
 BOXES_TYPES = ("auto", "detection3d", "marker")
@@ -53,6 +55,10 @@ class CompleterParams:
     fusion_max_points: int
     fusion_expiry: float
     fusion_align: bool
+    track_ids: str
+    association_max_distance: float
+    reuse: ReuseSettings | None
+    max_boxes_per_message: int
 
 
 def _int(lo: int, hi: int) -> dict[str, Any]:
@@ -65,6 +71,10 @@ def _float(lo: float, hi: float) -> dict[str, Any]:
 
 _LIMITS = FrameLimits()
 _FUSION = FusionLimits()
+_REUSE = ReuseSettings()
+_ASSOCIATION = AssociationSettings()
+# The node's frame budget of network work when reusing completions (offline: none, so output never depends on load).
+COMPLETION_BUDGET_S = 0.04
 # name -> (default, description, range keyword arguments of ParameterDescriptor)
 PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "cloud_topic": ("points", "Input sensor_msgs/PointCloud2 topic (sensor-data QoS).", {}),
@@ -142,12 +152,37 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                       _float(0.05, 3600.0)),
     "fusion_align": (True, "Align each new frame of a track to its fused points (x, y, yaw; bounded ICP) against "
                            "box jitter; false stores it as its box places it.", {}),
+    # track identity (gd_completion.association) and completion reuse (gd_completion.reuse)
+    "track_ids": ("associate", "Track id of each box: associate (built-in association of consecutive frames' boxes: "
+                               "works with any detector), message (the boxes' own ids: a tracker's) or off (no "
+                               "tracks: no fusion, no reuse).", {}),
+    "association_max_distance": (_ASSOCIATION.max_distance, "Metres between a track's predicted and a box's centre "
+                                                            "(plus a quarter of its length) to associate them.",
+                                 _float(0.1, 50.0)),
+    "reuse": (True, "Run the network for a tracked vehicle only when due (new points, size change, age) and "
+                    "publish its cached completion, placed by the current box, otherwise.", {}),
+    "reuse_new_points": (_REUSE.new_points, "Share of a vehicle's points farther than reuse_distance from those of "
+                                            "its last completion that makes it due.", _float(0.01, 1.0)),
+    "reuse_distance": (_REUSE.distance, "Metres: a point this far from the points of the last completion is new.",
+                       _float(0.01, 10.0)),
+    "reuse_size_change": (_REUSE.size_change, "Relative change of the box length, width or height that makes a "
+                                              "vehicle due.", _float(0.001, 10.0)),
+    "reuse_max_age": (_REUSE.max_age_s, "Seconds (stamp time) after which a cached completion is due.",
+                      _float(0.01, 3600.0)),
+    "completion_budget": (COMPLETION_BUDGET_S, "Seconds of network work per frame with reuse: the due vehicles run "
+                                               "most urgent first (never completed, then new points, nearer), the "
+                                               "rest keep their cached completion until a later frame.",
+                          _float(0.001, 3600.0)),
+    "max_boxes_per_message": (1000, "A boxes message with more boxes is refused before it is converted "
+                                    "(skipped_box_message_too_large).", _int(1, 1000000)),
 }
 LIMIT_PARAMETERS = {"max_boxes": "max_boxes", "max_box_length": "max_box_length", "max_box_width": "max_box_width",
                     "max_box_height": "max_box_height", "min_box_length": "min_box_length",
                     "duplicate_distance": "duplicate_distance", "max_points_per_vehicle": "max_points_per_vehicle",
                     "max_output_points": "max_output_points", "time_budget": "time_budget_s"}
 
+REUSE_PARAMETERS = frozenset({"reuse_new_points", "reuse_distance", "reuse_size_change", "reuse_max_age",
+                              "completion_budget"})
 
 # Applied while the node runs (`ros2 param set`); every other parameter is declared read-only, so a set
 # is refused with rclpy's reason instead of reporting success and changing nothing.
@@ -233,8 +268,14 @@ def validate(values: dict[str, Any]) -> CompleterParams:
         limits = FrameLimits(**{field: values[name] for name, field in LIMIT_PARAMETERS.items()})
     except ValueError as exc:
         raise ParameterError(f"frame limits: {exc}") from exc
-    plain = {k: v for k, v in values.items() if k not in LIMIT_PARAMETERS}
-    return CompleterParams(**{**plain, "device": device, "labels": labels, "class_map": class_map, "limits": limits})
+    if values["track_ids"] not in TRACK_ID_MODES:
+        raise ParameterError(f"parameter track_ids={values['track_ids']!r} must be one of {TRACK_ID_MODES}")
+    reuse = ReuseSettings(new_points=values["reuse_new_points"], distance=values["reuse_distance"],
+                          size_change=values["reuse_size_change"], max_age_s=values["reuse_max_age"],
+                          budget_s=values["completion_budget"]) if values["reuse"] else None
+    plain = {k: v for k, v in values.items() if k not in LIMIT_PARAMETERS and k not in REUSE_PARAMETERS}
+    return CompleterParams(**{**plain, "device": device, "labels": labels, "class_map": class_map, "limits": limits,
+                              "reuse": reuse})
 
 
 def check_model_sizes(params: CompleterParams, num_input: int, num_output: int, source: str) -> None:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from gd_completion.association import TRACK_ID_MODES
 from gd_completion.atomic import refuse_existing
 from gd_completion.bags.messages import pointcloud2_msg
 from gd_completion.bags.pairing import BagPairing, RecordedCloud
@@ -40,6 +41,8 @@ class CompletionSummary:
     skipped: Counter = field(default_factory=Counter)  # vehicles per reason (`skipped_<reason>` in the node)
     ignored_labels: int = 0
     nonfinite_points: int = 0
+    completions_run: int = 0      # vehicles the network completed
+    completions_reused: int = 0   # vehicles written from their track's cached completion (--reuse)
     boxes_wrong_frame: int = 0
     boxes_without_header: int = 0
     sync: SyncCounters = field(default_factory=SyncCounters)
@@ -57,7 +60,8 @@ class CompletionSummary:
         values = {"vehicles_completed": self.vehicles_completed, "ignored_labels": self.ignored_labels,
                   **{f"skipped_{reason}": n for reason, n in sorted(self.skipped.items())},
                   "boxes_wrong_frame": self.boxes_wrong_frame, "boxes_without_header": self.boxes_without_header,
-                  "nonfinite_points": self.nonfinite_points}
+                  "nonfinite_points": self.nonfinite_points, "completions_run": self.completions_run,
+                  "completions_reused": self.completions_reused}
         for key, n in self.sync.as_dict().items():
             values["frames_paired" if key == "paired" else f"drop_{key}"] = n
         return values
@@ -80,6 +84,8 @@ class CompletionSummary:
         self.skipped.update(stats.skipped)
         self.ignored_labels += stats.ignored_labels
         self.nonfinite_points += stats.nonfinite_points
+        self.completions_run += stats.completions_run
+        self.completions_reused += stats.completions_reused
 
 
 def start_fusion(pool: FramePool, publish_fused_points: bool, align: bool = True) -> None:
@@ -93,12 +99,24 @@ def start_fusion(pool: FramePool, publish_fused_points: bool, align: bool = True
     pool.completer.publish_fused_points = publish_fused_points
 
 
+def start_tracks(pool: FramePool, reuse: bool) -> None:
+    """Give the pool's in-process completer a fresh association of box ids (one per bag) and, with `reuse`, a fresh
+    completion cache (no frame budget: what is written never depends on the machine's load)."""
+    from gd_completion.association import BoxAssociator
+    from gd_completion.reuse import CompletionCache, ReuseSettings
+
+    if pool.completer is None:
+        raise BagError("track fusion and reuse need every frame of a bag in order in one process: use --workers 1")
+    pool.completer.associator = BoxAssociator()
+    pool.completer.cache = CompletionCache(ReuseSettings()) if reuse else None
+
+
 def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = None,
                  boxes_topic: str | None = None, output_topic: str | None = None, model: str | None = None,
                  storage: str = "mcap", completer: Any = None, overwrite: bool = False,
                  progress: bool = True, workers: int = 1, sync_tolerance: float = SYNC_TOLERANCE_S,
                  skip_unknown_types: bool = False, pool: FramePool | None = None, track_fusion: bool = False,
-                 publish_fused_points: bool = False, fusion_align: bool = True,
+                 publish_fused_points: bool = False, fusion_align: bool = True, reuse: bool = False,
                  **completer_options: Any) -> CompletionSummary:
     """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message.
 
@@ -114,7 +132,10 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
     `track_fusion`: each tracked vehicle (box id = track id) is completed from its points of all the bag's
     frames so far (a fresh `fusion.TrackFusion` per bag; frames in order, so in this process only);
     `publish_fused_points` writes the fused measured points instead of each frame's own; `fusion_align` False
-    turns off the alignment of each frame to its track (box jitter).
+    turns off the alignment of each frame to its track (box jitter). `reuse`: a tracked vehicle's network
+    completion runs only when due (`reuse.CompletionCache`, default settings, no frame budget), as the node's
+    reuse. With either, the boxes get the track ids of the completer's `track_ids` (completer option; default
+    "message", the command's --track-ids associate) from a fresh association per bag.
     A topic of a type with no stored definition and unknown here cannot be copied: BagError, unless
     `skip_unknown_types`, which leaves it out with a warning on stderr (counted in `summary.not_copied`).
     """
@@ -147,6 +168,9 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                   progress_bar("complete", "frames", total=total, quiet=not progress) as bar):
                 conns = {conn.id: copy_connection(writer, conn, src) for conn in copied}
                 out_conn = add_connection(writer, output_topic, POINTCLOUD2)
+                stamped = track_fusion or reuse
+                if stamped:
+                    start_tracks(pool, reuse)
                 if track_fusion:
                     start_fusion(pool, publish_fused_points, fusion_align)
 
@@ -156,7 +180,7 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                         boxes, wrong_frame = cloud.boxes_in_frame(box_set)
                         summary.boxes_wrong_frame += wrong_frame
                         queue.start(waiting.pop(cloud.index), pool.submit(read_xyz(cloud.msg), boxes,
-                                                                          cloud.stamp_ns if track_fusion else None))
+                                                                          cloud.stamp_ns if stamped else None))
 
                 def write(ready: Any) -> None:
                     """Copies as they are; a completion right after its cloud, with its header and bag time."""
@@ -223,6 +247,7 @@ def _run(args: argparse.Namespace) -> int:
     options["limits"] = replace(OFFLINE_LIMITS, time_budget_s=args.time_budget or math.inf)
     if args.no_measured_merge:
         options["measured_merge"] = False
+    options["track_ids"] = args.track_ids
     if args.engine == "local" and many.is_single_bag(args.input):
         workers = args.workers or os.cpu_count() or 1
         summary = complete_bag(args.input[0], args.output, cloud_topic=args.cloud_topic,
@@ -231,7 +256,7 @@ def _run(args: argparse.Namespace) -> int:
                                workers=workers, sync_tolerance=args.sync_tolerance,
                                skip_unknown_types=args.skip_unknown_types, track_fusion=args.track_fusion,
                                publish_fused_points=args.publish_fused_points,
-                               fusion_align=not args.no_fusion_align, **options)
+                               fusion_align=not args.no_fusion_align, reuse=args.reuse, **options)
         print(f"wrote {args.output}: {summary.text()}")
         return 0
     if many.is_single_bag(args.input):  # --engine ray on one bag: OUTPUT is still the output bag
@@ -247,7 +272,7 @@ def _run(args: argparse.Namespace) -> int:
         cloud_topic=args.cloud_topic, boxes_topic=args.boxes_topic, output_topic=args.output_topic,
         storage=args.storage, sync_tolerance=args.sync_tolerance, skip_unknown_types=args.skip_unknown_types,
         track_fusion=args.track_fusion, publish_fused_points=args.publish_fused_points,
-        fusion_align=not args.no_fusion_align)
+        fusion_align=not args.no_fusion_align, reuse=args.reuse)
     for outcome in outcomes:
         if outcome.status == "skipped":
             many.print_line(outcome)
@@ -304,6 +329,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-fusion-align", action="store_true",
                         help="with --track-fusion, store each frame as its box places it, without aligning it to "
                         "its track (as the node's fusion_align:=false)")
+    parser.add_argument("--reuse", action="store_true",
+                        help="run the network for a tracked vehicle only when it is due (new points, box size change, "
+                        "age: the node's reuse, without its frame budget) and write its last completion placed by "
+                        "the current box otherwise (frames in order: --workers 1)")
+    parser.add_argument("--track-ids", choices=TRACK_ID_MODES, default="associate",
+                        help="with --track-fusion or --reuse, the track id of each box: associate (built-in "
+                        "association of consecutive frames' boxes), message (the boxes' ids) or off (default "
+                        "associate, as the node)")
     parser.add_argument("--no-measured-merge", action="store_true",
                         help="write the network's completions as they are, as the node's measured_merge:=false "
                         "(default: thinned together with the measured points fed to the network and their mirror "
