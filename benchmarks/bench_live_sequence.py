@@ -100,6 +100,7 @@ def run_once(frames: list[tuple[object, object]], reuse: bool, load: bool, args:
             answered = [s for s in sent if s in client.reply_times]
             latency = np.array([client.reply_times[s] - sent[s] for s in answered]) * 1e3
             delta = {k: diag.get(k, 0) - base.get(k, 0) for k in diag}
+            work = np.array(client.processing_times[-len(answered):] or [float("nan")])
             published = max(delta.get("frames_published", 0), 1)
             return {"reuse": reuse, "load": load, "sent": len(sent), "answered": len(answered),
                     "p50": float(np.percentile(latency, 50)) if len(latency) else float("nan"),
@@ -108,7 +109,8 @@ def run_once(frames: list[tuple[object, object]], reuse: bool, load: bool, args:
                     "reused": delta.get("completions_reused", 0) / published,
                     "vehicles": delta.get("vehicles_completed", 0) / published,
                     "deferred": delta.get("skipped_deferred", 0) / published,
-                    "rss": node.peak_rss_mib()}
+                    "rss": node.peak_rss_mib(), "work_p50": float(np.median(work)),
+                    "work_p95": float(np.percentile(work, 95))}
     finally:
         if burner is not None:
             burner.kill()
@@ -130,7 +132,7 @@ def publish(client: object, cloud: object, markers: object, stamp_ns: int, id_of
 def describe(r: dict) -> str:
     return (f"reuse {'on ' if r['reuse'] else 'off'}, {'one busy core' if r['load'] else 'no load     '}: answered "
             f"{r['answered']}/{r['sent']} ({100 * r['answered'] / r['sent']:.0f} %), end-to-end p50 {r['p50']:.0f} ms, "
-            f"p95 {r['p95']:.0f} ms; per published frame: vehicles {r['vehicles']:.1f}, network runs {r['run']:.1f}, "
+            f"p95 {r['p95']:.0f} ms (node processing p50 {r['work_p50']:.0f}, p95 {r['work_p95']:.0f} ms); per published frame: vehicles {r['vehicles']:.1f}, network runs {r['run']:.1f}, "
             f"reused {r['reused']:.1f}, never-completed deferred {r['deferred']:.1f}; peak RSS {r['rss']:.0f} MiB")
 
 

@@ -136,6 +136,7 @@ class VehicleCompleter:
         self.track_ids = track_ids
         self.associator = BoxAssociator()
         self.cache = CompletionCache(reuse) if reuse is not None else None
+        self._vehicle_seconds = 0.0   # recent mean wall time of one vehicle's network completion (budget planning)
         self.num_input = model.config.num_input
         self.num_output = model.config.num_output
         if threads < 1:
@@ -212,21 +213,27 @@ class VehicleCompleter:
                                                                     None)])
 
     def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None, merge: bool,
-                      deadline: float, cancel: threading.Event | None, fused: Sequence[bool] | None = None
-                      ) -> list[tuple[np.ndarray, np.ndarray] | None]:
+                      deadline: float, cancel: threading.Event | None, fused: Sequence[bool] | None = None,
+                      finish_by: bool = False) -> list[tuple[np.ndarray, np.ndarray] | None]:
         """Each vehicle's (completion, measured rows) in order (`_complete_one`; `fused`: which partials are a
         track's fused partial, none when None); None for those not started before `deadline` (time.monotonic) or
-        after `cancel` was set."""
+        after `cancel` was set. `finish_by`: a vehicle after the first starts only when it is expected to finish
+        by `deadline` (the recent mean time of one vehicle)."""
         if sizes is not None and len(sizes) != len(partials):
             raise ValueError(f"{len(partials)} partial clouds but {len(sizes)} box sizes")
 
-        def one(item: tuple[np.ndarray, Sequence[float] | None, bool]) -> tuple[np.ndarray, np.ndarray] | None:
-            if time.monotonic() > deadline or (cancel is not None and cancel.is_set()):
+        def one(item: tuple[int, np.ndarray, Sequence[float] | None, bool]) -> tuple[np.ndarray, np.ndarray] | None:
+            index, *task = item
+            started = time.monotonic()
+            expected = self._vehicle_seconds if finish_by and index > 0 else 0.0
+            if started + expected > deadline or (cancel is not None and cancel.is_set()):
                 return None
-            return self._complete_one(*item, merge)
+            result = self._complete_one(*task, merge)
+            self._vehicle_seconds += 0.2 * (time.monotonic() - started - self._vehicle_seconds)
+            return result
         run = self._pool.map if self._pool is not None else map
         count = len(partials)
-        return list(run(one, zip(partials, sizes if sizes is not None else [None] * count,
+        return list(run(one, zip(range(count), partials, sizes if sizes is not None else [None] * count,
                                  fused if fused is not None else [False] * count)))
 
     def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, fused: bool, merge: bool
@@ -328,7 +335,8 @@ class VehicleCompleter:
             run_deadline = min(deadline, time.monotonic() + cache.settings.budget_s)
         results = self._complete_all([vehicles[i].normalized for i in due], [vehicles[i].box.size for i in due],
                                      self.measured_merge, run_deadline, cancel,
-                                     [vehicles[i].current_source is not None for i in due])
+                                     [vehicles[i].current_source is not None for i in due],
+                                     finish_by=cache is not None and math.isfinite(cache.settings.budget_s))
         ran = dict(zip(due, results))
         cancelled = cancel is not None and cancel.is_set()
         outputs: list[tuple[np.ndarray, np.ndarray] | None] = []
@@ -389,7 +397,7 @@ class VehicleCompleter:
         """A cached completion as published: with the measured points published, its points that were measured
         when it was made are left out (this frame's measured points take their place); else all of them,
         generated=1 (they are not this frame's measurements)."""
-        points = cached.points[~cached.measured] if include else cached.points
+        points = cached.generated if include else cached.points
         return points, np.ones(len(points), np.uint8)
 
     def _assemble(self, boxes: Sequence[Box3D],

@@ -32,7 +32,7 @@ from gd_completion.registration import strided_indices
 
 __all__ = ["CachedCompletion", "CompletionCache", "Decision", "ReuseSettings"]
 
-MAX_QUERY_POINTS = 512   # this frame's points tested for new information at most (evenly strided)
+MAX_QUERY_POINTS = 128   # this frame's points tested for new information at most (evenly strided)
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ class ReuseSettings:
     new_points: float = 0.25     # share of this frame's points that are new (farther than `distance`) to re-run
     distance: float = 0.2        # metres from the points of the last completion
     size_change: float = 0.05    # relative change of the box length, width or height that re-runs
-    max_age_s: float = 1.0       # seconds (stamp time): a completion older than this is re-run
+    max_age_s: float = 2.0       # seconds (stamp time): a completion older than this is re-run
     budget_s: float = math.inf   # seconds of network work per frame (pipeline scheduler); inf: every due track runs
     expiry_s: float = 3.0        # an entry unseen this long (stamp time) is dropped
     max_tracks: int = 1024       # entries kept at most (least recently used dropped)
@@ -65,6 +65,9 @@ class CachedCompletion:
     stamp_ns: int
     reference: cKDTree          # the measured points it was made from, metres in the box frame (voxel-thinned)
     last_seen_ns: int
+
+    def __post_init__(self) -> None:
+        self.generated = self.points[~self.measured]   # what is published beside this frame's measured points
 
 
 @dataclass(frozen=True)

@@ -74,7 +74,7 @@ _FUSION = FusionLimits()
 _REUSE = ReuseSettings()
 _ASSOCIATION = AssociationSettings()
 # The node's frame budget of network work when reusing completions (offline: none, so output never depends on load).
-COMPLETION_BUDGET_S = 0.04
+COMPLETION_BUDGET_S = 0.03
 # name -> (default, description, range keyword arguments of ParameterDescriptor)
 PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "cloud_topic": ("points", "Input sensor_msgs/PointCloud2 topic (sensor-data QoS).", {}),
