@@ -24,7 +24,7 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "completer = gd_completion.ros.completer_node:main",
+            "completer = gd_completion.ros.completer_main:main",
             "gd-completion = gd_completion.cli:main",
         ],
     },

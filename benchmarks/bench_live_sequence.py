@@ -132,7 +132,8 @@ def publish(client: object, cloud: object, markers: object, stamp_ns: int, id_of
 def describe(r: dict) -> str:
     return (f"reuse {'on ' if r['reuse'] else 'off'}, {'one busy core' if r['load'] else 'no load     '}: answered "
             f"{r['answered']}/{r['sent']} ({100 * r['answered'] / r['sent']:.0f} %), end-to-end p50 {r['p50']:.0f} ms, "
-            f"p95 {r['p95']:.0f} ms (node processing p50 {r['work_p50']:.0f}, p95 {r['work_p95']:.0f} ms); per published frame: vehicles {r['vehicles']:.1f}, network runs {r['run']:.1f}, "
+            f"p95 {r['p95']:.0f} ms (node processing p50 {r['work_p50']:.0f}, p95 {r['work_p95']:.0f} ms); "
+            f"per published frame: vehicles {r['vehicles']:.1f}, network runs {r['run']:.1f}, "
             f"reused {r['reused']:.1f}, never-completed deferred {r['deferred']:.1f}; peak RSS {r['rss']:.0f} MiB")
 
 

@@ -14,3 +14,6 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/python -m pip install --quiet --no-deps --no-build-isolation -e .
   echo "$want" > "$stamp"
 fi
+# Compile the CPU kernels now (numba caches them beside the sources, and recompiles after a source change), not on
+# the first `completer` start; seconds when the cache is current.
+.venv/bin/python -m gd_completion.warmup

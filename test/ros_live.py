@@ -44,7 +44,7 @@ class NodeProcess:
     def __init__(self, tmp: Path, params: dict[str, str], env: dict[str, str], name: str) -> None:
         self.stderr_path = tmp / f"{name}.stderr"
         self.exit_code: int | None = None
-        args = [sys.executable, "-m", "gd_completion.ros.completer_node", "--ros-args", "-r", f"__node:={name}"]
+        args = [sys.executable, "-m", "gd_completion.ros.completer_main", "--ros-args", "-r", f"__node:={name}"]
         for k, v in params.items():
             args += ["-p", f"{k}:={v}"]
         self._err = open(self.stderr_path, "w")

@@ -514,3 +514,11 @@ def ball_query(query: np.ndarray, ref: np.ndarray, m: int, radius: float, block:
                 for s in range(m):
                     out[c, qi, s] = idx[qi, s] if s < k and not dist[qi, s] > r2 else idx[qi, 0]
     return out
+
+
+def kernels_cached() -> bool:
+    """True when numba's on-disk cache holds compiled kernels of this module (`python -m gd_completion.warmup` made
+    them): a start then does not compile for about a minute."""
+    from pathlib import Path
+
+    return any((Path(__file__).parent / "__pycache__").glob(f"{Path(__file__).stem}.*.nbi"))

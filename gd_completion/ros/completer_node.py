@@ -29,6 +29,7 @@ from gd_completion.association import AssociationSettings, BoxAssociator
 from gd_completion.box_messages import BoxSet, box_count, detections_to_boxes, markers_to_boxes
 from gd_completion.errors import GDCompletionError, PointCloud2Error
 from gd_completion.fusion import FusionLimits, TrackFusion
+from gd_completion.model.kernels import kernels_cached
 from gd_completion.pipeline import VehicleCompleter, completion_to_structured
 from gd_completion.pointcloud2 import read_xyz
 from gd_completion.ros.cloud_messages import structured_to_msg
@@ -109,6 +110,9 @@ class CompleterNode(Node):
                                                              **({} if p.fusion_align else {"align": None})))
             self.completer.publish_fused_points = p.publish_fused_points
         check_model_sizes(p, self.completer.num_input, self.completer.num_output, p.model_path or "(shipped weights)")
+        if not kernels_cached():
+            self.get_logger().info("compiling the CPU kernels (first start after an install without "
+                                   "`python -m gd_completion.warmup`: about a minute; cached on disk after)")
         self.completer.warm_up()
         boxes_cls, self._to_boxes, boxes_type_name = resolve_boxes_type(p.boxes_type)
 
@@ -366,9 +370,11 @@ def _wants_help(argv: Sequence[str]) -> bool:
     return any(a in ("-h", "--help") for a in user)
 
 
-def main(args: list[str] | None = None) -> int:
+def main(args: list[str] | None = None, start_up_handler: Callable[[int, Any], None] | None = None) -> int:
     """`ros2 run gd_completion completer`: spin until SIGINT/SIGTERM, then exit 0 within 2 s (a second signal,
-    as `ros2 launch` sends, changes nothing); exit 2 with one line on a configuration error."""
+    as `ros2 launch` sends, changes nothing); exit 2 with one line on a configuration error. A signal while the
+    node is being constructed (model loading, warm-up) goes to `start_up_handler` (`completer_main`: exit 0 at
+    once); without one it is acted on once the node is constructed."""
     argv = list(sys.argv[1:] if args is None else args)
     if _wants_help(argv):
         print_help()
@@ -384,11 +390,13 @@ def main(args: list[str] | None = None) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):   # further signals ignored, through interpreter exit too
             signal.signal(sig, signal.SIG_IGN)        # (Python restores SIG_DFL for handled signals at exit)
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, request_stop)
+        signal.signal(sig, start_up_handler or request_stop)
     node: CompleterNode | None = None
     code = 0
     try:
         node = CompleterNode()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, request_stop)
         for problem in params_file_problems(argv, (node.get_name(), node.get_fully_qualified_name().lstrip("/"))):
             node.get_logger().warning(problem)
         executor = SingleThreadedExecutor()

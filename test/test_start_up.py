@@ -1,0 +1,46 @@
+"""The `completer` executable's start-up: a SIGINT or SIGTERM at any moment of it (torch importing, the model
+loading, the kernels warming up, after ready) ends the process with exit code 0 and no traceback."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from ros_live import REPO, ros_env
+
+pytestmark = pytest.mark.integration
+HANG_GUARD_S = 20.0   # a hang fails the test; the exit times themselves are measured by benchmarks/start_up.py
+
+
+def _start(tmp: Path) -> tuple[subprocess.Popen, Path]:
+    err = tmp / f"completer_{time.monotonic_ns()}.stderr"
+    env = {**os.environ, **ros_env(tmp), "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-m", "gd_completion.ros.completer_main", "--ros-args", "-p",
+                             "boxes_type:=marker"], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=err.open("w"))
+    return proc, err
+
+
+@pytest.mark.parametrize(("sig", "delay"), [(signal.SIGINT, 0.05), (signal.SIGTERM, 0.3), (signal.SIGINT, 1.0),
+                                            (signal.SIGTERM, 2.0)])
+def test_signal_during_start_up_exits_0_without_traceback(tmp_path, sig, delay) -> None:
+    proc, err = _start(tmp_path)
+    time.sleep(delay)
+    proc.send_signal(sig)
+    assert proc.wait(HANG_GUARD_S) == 0, err.read_text()[-2000:]
+    assert "Traceback" not in err.read_text()
+
+
+def test_signal_after_ready_exits_0(tmp_path) -> None:
+    proc, err = _start(tmp_path)
+    end = time.monotonic() + 120
+    while "completer ready" not in err.read_text():
+        assert proc.poll() is None and time.monotonic() < end, err.read_text()[-2000:]
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(HANG_GUARD_S) == 0
+    assert "Traceback" not in err.read_text()
