@@ -262,7 +262,7 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
                               "--pandaset", str(shared_data / "pandaset-002"), "--max-vehicles", "2",
                               "--max-frames-per-vehicle", "2", "--threads", "1", "--fusion-max-vehicles", "1",
                               "--heldout-mesh-samples", "2", "--random-reference-points", "2000",
-                              "--fusion-max-frames", "3", "--fusion-consistency-frames", "3"])
+                              "--fusion-max-frames", "3", "--fusion-consistency-frames", "3", "--reuse-frames", "4"])
     assert args.func(args) == 0
     assert seen == {"n": 2, "seed": synthetic.EVAL_SEED}
     text = (out / "report.md").read_text()
@@ -295,6 +295,11 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     assert (out / "pandaset_worst.png").stat().st_size > 10_000
     assert (out / "heldout_meshes.png").stat().st_size > 10_000
     assert (out / "synthetic_vehicles.png").stat().st_size > 10_000
+    reuse = {cells(line)[0]: cells(line) for line in text.split("## PandaSet 002: completion reuse")[1].splitlines()
+             if line.startswith(("| fresh", "| reuse"))}
+    assert sorted(reuse) == ["fresh", "reuse, association", "reuse, cuboid ids"]
+    assert int(reuse["reuse, association"][1]) < int(reuse["fresh"][1]) and int(reuse["fresh"][2]) == 0
+    assert "true frame-to-frame links kept" in text
 
 
 def test_load_heldout_uses_the_synth_dataset(tmp_path):

@@ -184,7 +184,8 @@ def test_evaluate_no_fusion_skips_the_section(tmp_path, shared_data):
     evaluate.register(parser.add_subparsers())
     args = parser.parse_args(["evaluate", "--model", str(model_path), "--output", str(tmp_path / "out"),
                               "--synthetic-samples", "0", "--pandaset", str(root), "--max-vehicles", "1",
-                              "--max-frames-per-vehicle", "1", "--no-fusion", "--threads", "1"])
+                              "--max-frames-per-vehicle", "1", "--no-fusion", "--no-reuse",
+                              "--threads", "1"])
     assert args.func(args) == 0
     text = (tmp_path / "out" / "report.md").read_text()
     assert "## PandaSet 002: single frame" in text and "track fusion" not in text

@@ -129,6 +129,21 @@ def run_evaluation(args: argparse.Namespace) -> int:
             emit(fusion_section(fused))
             steps = ", ".join(f"{k} {v:.1f} s" for k, v in fused.seconds.items())
             timings.append(f"fusion: {time.perf_counter() - t0:.1f} s ({steps})")
+        if not args.no_reuse:
+            from gd_completion.evaluation.reuse_eval import evaluate_reuse, reuse_section
+            from gd_completion.limits import OFFLINE_LIMITS
+            from gd_completion.pipeline import VehicleCompleter
+            from gd_completion.reuse import ReuseSettings
+
+            t0 = time.perf_counter()
+            threads = torch.get_num_threads()
+            reused = evaluate_reuse(pandaset, lambda ids, reuse: VehicleCompleter(
+                model, preprocessing=preprocessing, limits=OFFLINE_LIMITS, track_ids=ids,
+                reuse=ReuseSettings() if reuse else None), preprocessing=preprocessing, frames=args.reuse_frames)
+            torch.set_num_threads(threads)
+            emit(reuse_section(reused))
+            steps = ", ".join(f"{k} {v:.1f} s" for k, v in reused.seconds.items())
+            timings.append(f"reuse: {time.perf_counter() - t0:.1f} s ({steps})")
 
     timings.append(f"total {time.perf_counter() - start:.1f} s, {torch.get_num_threads()} torch threads")
     emit("## Run time\n\n" + "\n".join(f"- {t}" for t in timings))
@@ -171,6 +186,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--box-noise-seed", type=int, default=2024, help="seed of the box noise (default 2024)")
     parser.add_argument("--max-vehicles", type=int, default=None, help="first N stationary vehicles only")
     parser.add_argument("--no-fusion", action="store_true", help="skip the PandaSet track-fusion part")
+    parser.add_argument("--no-reuse", action="store_true", help="skip the PandaSet completion-reuse part")
+    parser.add_argument("--reuse-frames", type=int, default=None,
+                        help="first N frames of the sequence in the completion-reuse part (default all)")
     parser.add_argument("--fusion-max-frames", type=int, default=None,
                         help="first N frames of each vehicle fed to the track fusion (default all)")
     parser.add_argument("--fusion-consistency-frames", type=int, default=10,
