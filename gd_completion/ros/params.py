@@ -87,7 +87,8 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "model_path": ("", "GGD-Net checkpoint (.pt); empty = the weights shipped with the package.", {}),
     "device": ("cpu", "Torch device: cpu, cuda or cuda:N.", {}),
     "num_threads": (0, "CPU threads completing a frame's vehicles in parallel, one torch thread each; "
-                       "0 = one per core.", _int(0, 256)),
+                       "0 = 1 with reuse (a frame's network work is small: a second thread only contends with the "
+                       "node's other threads), else one per core.", _int(0, 256)),
     "num_input_points": (0, "Points per vehicle fed to the network; must match the checkpoint (0 = take it "
                             "from the checkpoint).", _int(0, 65536)),
     "num_output_points": (0, "Points the network generates per vehicle; must match the checkpoint (0 = take it "
