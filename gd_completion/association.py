@@ -35,7 +35,7 @@ class AssociationSettings:
     max_distance: float = 2.0       # metres between the predicted and the new centre, plus `length_share` x length
     length_share: float = 0.25      # of the box length, added to the gate (long vehicles turn and move more)
     max_size_change: float = 0.3    # relative change of length, width or height allowed within a track
-    expiry_s: float = 1.0           # a track unmatched this long (stamp time) is dropped
+    expiry_s: float = 3.0           # a track unmatched this long (stamp time) is dropped
     velocity_smoothing: float = 0.5  # weight of the newest displacement in the smoothed velocity
     max_tracks: int = 4096          # tracks kept at most (the least recently matched are dropped)
 

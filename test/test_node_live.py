@@ -63,7 +63,10 @@ def ros_context(tmp_path_factory):
             os.environ[k] = v
 
 
-BASE_PARAMS = {"num_threads": "1", "boxes_type": "marker", "sync_tolerance": "0.05", "sync_max_wait": "2.0"}
+# reuse off: these tests expect every vehicle of every frame completed by the network (with reuse, a vehicle never
+# completed may wait a frame for the frame budget); test_reuse_live turns it on
+BASE_PARAMS = {"num_threads": "1", "boxes_type": "marker", "sync_tolerance": "0.05", "sync_max_wait": "2.0",
+               "reuse": "false"}
 
 
 @pytest.fixture(scope="module")
@@ -550,3 +553,33 @@ def test_track_fusion_live(ros_context, frames, tmp_path):
             time.sleep(0.1)
         assert client.diag["tracks_alive"] == 1 and client.diag["tracks_reset"] == 0
         assert diag["frames_published"] >= 4
+
+
+def test_reuse_live_publishes_the_cached_completion_and_counts_it(ros_context, frames, tmp_path):
+    """The defaults (association, reuse): a parked car seen again 1 s later is published from its cached completion
+    (the same generated points, placed by the same box), counted in /diagnostics; an oversized boxes message is
+    refused before it is converted."""
+    params = {"max_boxes_per_message": "50", "reuse": "true"}
+    with own_node(ros_context, tmp_path, "reuse", params=params) as (node, client):
+        client.warm_up(frames[3])
+        time.sleep(1.0)
+        base = client.settled_diagnostics()
+        replies = []
+        for _ in range(2):
+            stamp = client.send(frames[3])
+            msg = client.wait_reply(stamp)
+            assert msg is not None, node.stderr[-2000:]
+            replies.append(read_points(msg))
+        deltas = client.wait_diagnostics(base, {"completions_reused": 1, "frames_published": 2})
+        assert deltas["completions_reused"] >= 1 and deltas["frames_published"] == 2
+        generated = [np.sort(np.stack([p["x"], p["y"], p["z"]], 1)[p["generated"] == 1], axis=0) for p in replies]
+        if client.diag["completions_run"] == base["completions_run"]:   # both frames reused: the same points
+            np.testing.assert_array_equal(generated[0], generated[1])
+        assert len(generated[0]) > NUM_OUTPUT - NUM_INPUT
+        car = frames[3].boxes[0]
+        crowd = [Box3D((car.center[0] + 10 + i, car.center[1], car.center[2]), car.size, car.yaw, "car", 100 + i)
+                 for i in range(60)]
+        client.send(frames[3], boxes=crowd)
+        assert client.wait_diagnostics(base, {"skipped_box_message_too_large": 1}) == \
+            {"skipped_box_message_too_large": 1}
+        assert "refused a boxes message" in node.stderr

@@ -99,8 +99,8 @@ class CompleterNode(Node):
         self.params: CompleterParams = read_parameters(self)
         p = self.params
         self.completer = completer or VehicleCompleter.from_checkpoint(
-            p.model_path or None, device=p.device, num_threads=p.num_threads or (1 if p.reuse else None), labels=p.labels,
-            track_ids=p.track_ids, reuse=p.reuse)
+            p.model_path or None, device=p.device, num_threads=p.num_threads or (1 if p.reuse else None),
+            labels=p.labels, track_ids=p.track_ids, reuse=p.reuse)
         self.completer.associator = BoxAssociator(AssociationSettings(max_distance=p.association_max_distance))
         self._checkpoint_preprocessing = self.completer.preprocessing
         if p.track_fusion:
