@@ -88,3 +88,12 @@ def test_device_and_checkpoint_errors_are_clear(tmp_path):
     with pytest.raises(CheckpointError) as info:
         read_checkpoint(junk)
     assert "weights_only=False" not in str(info.value) and "junk.pt" in str(info.value)
+
+
+def test_readme_parameters_table_is_the_node_table():
+    """README.md's parameters table is `parameters_markdown()` (regenerate it from gd_completion/ros/params.py)."""
+    from gd_completion.ros.params import parameters_markdown
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    start = readme.index("| parameter | default | meaning |")
+    assert readme[start:readme.index("\n\n", start)] == parameters_markdown()

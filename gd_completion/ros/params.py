@@ -287,3 +287,14 @@ def check_model_sizes(params: CompleterParams, num_input: int, num_output: int, 
             raise ParameterError(
                 f"parameter {name}={wanted} does not match the checkpoint {source} ({actual}); "
                 f"set it to {actual} or 0 (take it from the checkpoint)")
+
+
+def parameters_markdown() -> str:
+    """The README's parameters table: every parameter, its default (as in `config/completer.yaml`) and meaning."""
+    import yaml
+
+    rows = ["| parameter | default | meaning |", "|---|---|---|"]
+    for name, (default, description, _) in PARAMETERS.items():
+        text = yaml.safe_dump(default, default_flow_style=True, width=1000).strip().removesuffix("...").strip()
+        rows.append(f"| `{name}` | `{text}` | {description} |")
+    return "\n".join(rows)
