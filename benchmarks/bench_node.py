@@ -100,6 +100,9 @@ def main() -> None:
     ap.add_argument("--num-threads", type=int, default=0, help="node num_threads (0 = one vehicle thread per core)")
     ap.add_argument("--device", default="cpu", help="node device (cpu, cuda or cuda:N)")
     ap.add_argument("--no-measured-merge", action="store_true", help="node parameter measured_merge:=false")
+    ap.add_argument("--reuse", action="store_true",
+                    help="node parameter reuse:=true (default off here: a repeated frame would be served from the "
+                    "cache; benchmarks/bench_live_sequence.py measures reuse on a real sequence)")
     ap.add_argument("--fresh-frame-age", type=float, default=None,
                     help="node parameter fresh_frame_age (default: the node's default)")
     ap.add_argument("--model", default="", help="node parameter model_path (default: the shipped weights)")
@@ -114,6 +117,7 @@ def main() -> None:
         return
     params = {"num_threads": str(args.num_threads), "boxes_type": "marker", "device": args.device,
               "measured_merge": "false" if args.no_measured_merge else "true",
+              "reuse": "true" if args.reuse else "false",
               **({"model_path": str(Path(args.model).resolve())} if args.model else {}),
               **({"fresh_frame_age": str(args.fresh_frame_age)} if args.fresh_frame_age is not None else {})}
     with benchmark_session(params, "bench") as (node, client):

@@ -35,6 +35,7 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -150,29 +151,46 @@ class TrackFusion:
         self._aligned = 0
         self._align_refused = 0
 
-    def update(self, stamp_ns: int, vehicles: Sequence[CroppedVehicle]) -> list[CroppedVehicle]:
+    def update(self, stamp_ns: int, vehicles: Sequence[CroppedVehicle], executor: Executor | None = None
+               ) -> list[CroppedVehicle]:
         """Add each vehicle (keyed by `box.instance_id`) to its track; return, in the same order, the vehicles
         with `normalized` the track's fused partial in the current box's normalised frame (oldest frame first;
         the current frame last: its rows `current_source` of `measured`). `measured` and `box` stay the current
-        frame's."""
+        frame's. `executor`: aligns the vehicles' frames to their tracks in parallel (the ICP kernel releases the
+        GIL); the result is the same as without it."""
         stamp_ns = int(stamp_ns)
         with self._lock:
             self._restart_if_time_went_back(stamp_ns)
-            out: list[CroppedVehicle] = []
             seen: set[int] = set()
-            for vehicle in vehicles:
+            fused_rows: list[int] = []
+            prepared = []
+            for row, vehicle in enumerate(vehicles):
                 key = vehicle.box.instance_id
                 if key < 0 or key in seen:
-                    out.append(vehicle)
                     continue
                 seen.add(key)
-                fused, current = self._add(stamp_ns, vehicle)
-                out.append(replace(vehicle, normalized=fused, current_source=current))
+                fused_rows.append(row)
+                prepared.append(self._prepare(stamp_ns, vehicle))
+            align = self.limits.align
+            jobs = [(metres, track.target) for track, metres, _ in prepared]
+
+            def fit(job: tuple[np.ndarray, np.ndarray | None]) -> PlanarTransform | None:
+                metres, target = job
+                return align_planar(metres, target, align) if align is not None and target is not None \
+                    and len(metres) else None
+            run = executor.map if executor is not None and len(jobs) > 1 else map
+            fits = list(run(fit, jobs))
+            out = list(vehicles)
+            for row, (track, metres, kept), transform in zip(fused_rows, prepared, fits):
+                fused, current = self._store(track, vehicles[row], metres, kept, transform)
+                out[row] = replace(vehicles[row], normalized=fused, current_source=current)
             return out
 
-    def _add(self, stamp_ns: int, vehicle: CroppedVehicle) -> tuple[np.ndarray, np.ndarray]:
+    def _prepare(self, stamp_ns: int, vehicle: CroppedVehicle) -> tuple[_Track, np.ndarray, np.ndarray]:
+        """The vehicle's track (a new one when it expired or its box jumped in size), its frame's points in metres
+        in the box frame voxel-thinned, and the rows of `normalized` those are."""
         key, box = vehicle.box.instance_id, vehicle.box
-        track = self._tracks.pop(key, None)
+        track = self._tracks.get(key)
         if track is not None and stamp_ns - track.last_ns > self.limits.expiry_s * 1e9:
             self._expired += 1
             track = None
@@ -184,9 +202,13 @@ class TrackFusion:
         track.box, track.last_ns = box, stamp_ns
         metres = np.asarray(vehicle.normalized, dtype=np.float32).reshape(-1, 3) * np.float32(box.size[0])
         kept = voxel_first_indices(metres, self.limits.voxel_size)
-        metres = metres[kept]
+        return track, metres[kept], kept
+
+    def _store(self, track: _Track, vehicle: CroppedVehicle, metres: np.ndarray, kept: np.ndarray,
+               transform: PlanarTransform | None) -> tuple[np.ndarray, np.ndarray]:
+        """Store the frame (aligned by `transform` when the fit was accepted) in its track; the fused partial and
+        the rows of `measured` its last rows are."""
         if self.limits.align is not None and track.target is not None and len(metres):
-            transform = align_planar(metres, track.target, self.limits.align)
             if transform is None:
                 self._align_refused += 1
             else:
@@ -195,7 +217,8 @@ class TrackFusion:
                 track.correction_sum += (transform.yaw, transform.tx, transform.ty)
         track.frames_seen += 1
         kept = kept[track.add(metres, self.limits)]
-        self._tracks[key] = track
+        self._tracks.pop(vehicle.box.instance_id, None)
+        self._tracks[vehicle.box.instance_id] = track
         everything = track.metres()   # one concatenation per update: the fused partial and the next target
         if self.limits.align is not None:
             track.target = evenly_strided(everything, self.limits.align.max_target_points)

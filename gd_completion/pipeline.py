@@ -285,7 +285,7 @@ class VehicleCompleter:
         fusion = self.fusion if stamp_ns is not None else None
         if fusion is not None:
             fusion.expire(stamp_ns)
-            vehicles = fusion.update(stamp_ns, vehicles)
+            vehicles = fusion.update(stamp_ns, vehicles, executor=self._pool)
         outputs = self._completions(vehicles, stamp_ns, deadline, cancel, stats, include)
         done = []
         budget = self.limits.max_output_points

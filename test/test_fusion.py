@@ -361,3 +361,29 @@ def test_merged_measured_points_are_published_once(include: bool, fused_points: 
     assert 0 < own.sum() and (fused_points or ((rows >= 0) & (rows < own_from)).any())   # both kinds occur
     if not include:
         assert len(result.points) == len(completion) and (result.generated == 0).sum() == own.sum()
+
+
+def test_parallel_alignment_gives_the_same_tracks() -> None:
+    """Aligning a frame's vehicles on a thread pool (the pipeline's vehicle threads) changes nothing: the same fused
+    partials, current rows and counters as one after the other."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from test_registration import seen_part
+
+    rng = np.random.default_rng(5)
+    cars = [Box3D((10.0 + 7 * i, 4.0 - 3 * i, -0.8), SIZE, 0.3 * i, "car", 20 + i) for i in range(4)]
+    frames = []
+    for k in range(6):
+        jittered = [replace(b, center=(b.center[0] + rng.normal(0, 0.04), b.center[1] + rng.normal(0, 0.04),
+                                       b.center[2]), yaw=b.yaw + np.radians(rng.normal(0, 1.0))) for b in cars]
+        clouds = [to_cloud(seen_part(np.random.default_rng(100 * k + i), 600), car) for i, car in enumerate(cars)]
+        frames.append([CroppedVehicle(box, cloud, normalize(cloud, box)) for box, cloud in zip(jittered, clouds)])
+    serial, parallel = TrackFusion(), TrackFusion()
+    with ThreadPoolExecutor(2) as pool:
+        for k, vehicles in enumerate(frames):
+            a = serial.update(k, vehicles)
+            b = parallel.update(k, vehicles, executor=pool)
+            for x, y in zip(a, b):
+                np.testing.assert_array_equal(x.normalized, y.normalized)
+                np.testing.assert_array_equal(x.current_source, y.current_source)
+    assert serial.counters == parallel.counters and serial.counters["frames_aligned"] > 10

@@ -141,8 +141,8 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     "time_budget": (_LIMITS.time_budget_s, "Seconds of completion per frame; vehicles not started by then are "
                                            "skipped (time_budget), nearest first.", _float(0.01, 3600.0)),
     # track fusion (gd_completion.fusion): complete each tracked vehicle (box id = track id) from all its frames
-    "track_fusion": (False, "Complete each tracked vehicle from its points of all frames so far (box id = track "
-                            "id), in its box frame.", {}),
+    "track_fusion": (False, "Complete each tracked vehicle (track ids: track_ids) from its points of all frames "
+                            "so far, in its box frame.", {}),
     "publish_fused_points": (False, "With track_fusion, publish a vehicle's fused measured points (generated=0) "
                                     "instead of the frame's own.", {}),
     "fusion_max_tracks": (_FUSION.max_tracks, "Tracks kept at most; the least recently seen is dropped beyond it.",

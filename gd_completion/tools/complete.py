@@ -322,7 +322,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="with --engine ray: the Ray cluster ('auto', 'HOST:6379' or 'ray://HOST:10001'; "
                              "default: start a local Ray with --workers CPUs)")
     parser.add_argument("--track-fusion", action="store_true",
-                        help="complete each tracked vehicle (box id = track id) from its points of all frames so "
+                        help="complete each tracked vehicle (track ids: --track-ids) from its points of all frames so "
                         "far, as the node's track_fusion (frames in order: --workers 1)")
     parser.add_argument("--publish-fused-points", action="store_true",
                         help="with --track-fusion, write the fused measured points instead of each frame's own")
