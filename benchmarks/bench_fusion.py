@@ -22,8 +22,9 @@ from gd_completion.evaluation.fusion_eval import load_frames, vehicle_tracks
 from gd_completion.fusion import FusionLimits, TrackFusion
 from gd_completion.merge import merge_with_fed, merge_with_pool
 from gd_completion.model.checkpoint import load_model
-from gd_completion.preprocess import Preprocessing, resample_indices
+from gd_completion.preprocess import Preprocessing
 from gd_completion.registration import align_planar
+from gd_completion.sampling import resample_indices
 
 PANDASET = Path(__file__).resolve().parents[2] / "shared" / "data" / "pandaset-002"
 

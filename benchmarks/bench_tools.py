@@ -14,8 +14,8 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from gd_completion.bags.completion import complete_bag  # noqa: E402
 from gd_completion.pipeline import default_threads  # noqa: E402
-from gd_completion.tools.complete import complete_bag  # noqa: E402
 from gd_completion.tools.convert import convert_kitti, convert_pandaset  # noqa: E402
 
 SHARED = Path(os.environ.get("GD_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))

@@ -19,7 +19,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from gd_completion.geometry import Box3D
 from gd_completion.limits import check_positive_fields
@@ -115,6 +114,8 @@ class BoxAssociator:
         allowed = (cost <= gate[:, None]) & size_ok & label_ok
         if not allowed.any():
             return {}
+        from scipy.optimize import linear_sum_assignment  # on first use: `completer --help` stays light
+
         rows, cols = linear_sum_assignment(np.where(allowed, cost, _FORBIDDEN))
         return {int(r): self._tracks[c] for r, c in zip(rows, cols) if allowed[r, c]}
 

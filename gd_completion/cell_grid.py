@@ -1,5 +1,5 @@
 """Points bucketed by the cell of a uniform grid (numba counting sort): the shared step of the grid searches
-(`model.kernels`' kNN graph, `registration`'s ICP, `evaluation.nearest`). Each search chooses its own cell
+(`kernels`' kNN graph, `registration`'s ICP, `evaluation.nearest`). Each search chooses its own cell
 size and grid extent; the cell of a point and the bucketing are the same code for all three."""
 from __future__ import annotations
 

@@ -43,9 +43,10 @@ import numpy as np
 from gd_completion.geometry import Box3D, denormalize
 from gd_completion.limits import check_positive_fields
 from gd_completion.preprocess import CroppedVehicle
-from gd_completion.registration import AlignSettings, PlanarTransform, align_planar, evenly_strided, strided_indices
+from gd_completion.registration import AlignSettings, PlanarTransform, align_planar
+from gd_completion.sampling import evenly_strided, strided_indices, voxel_first_indices
 
-__all__ = ["FusionLimits", "TrackFusion", "voxel_downsample", "voxel_first_indices"]
+__all__ = ["FusionLimits", "TrackFusion"]
 
 
 @dataclass(frozen=True)
@@ -65,27 +66,6 @@ class FusionLimits:
         if self.align is not None and not isinstance(self.align, AlignSettings):
             raise ValueError(f"FusionLimits.align={self.align!r} must be AlignSettings or None")
         check_positive_fields(self, skip=("align",))
-
-
-def voxel_first_indices(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Ascending indices of the first point (in input order) of each `voxel_size` voxel of `points` (M, 3),
-    all finite."""
-    if len(points) == 0:
-        return np.zeros(0, np.intp)
-    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel_size)   # integer-valued floats
-    low = keys.min(axis=0)
-    span = keys.max(axis=0) - low + 1
-    if np.abs(keys).max() >= 2.0 ** 52 or float(np.prod(span)) >= 2.0 ** 62:
-        # keys beyond exact float64 integers, or one integer code per voxel would overflow: unique rows
-        return np.sort(np.unique(keys, axis=0, return_index=True)[1])
-    shifted, strides = (keys - low).astype(np.int64), span.astype(np.int64)
-    code = (shifted[:, 0] * strides[1] + shifted[:, 1]) * strides[2] + shifted[:, 2]
-    return np.sort(np.unique(code, return_index=True)[1])
-
-
-def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """The first point (in input order) of each `voxel_size` voxel of `points` (M, 3), order kept."""
-    return points[voxel_first_indices(points, voxel_size)]
 
 
 class _Track:

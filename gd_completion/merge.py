@@ -16,9 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gd_completion.fusion import voxel_first_indices
-from gd_completion.model.kernels import fps_pruned
-from gd_completion.preprocess import resample_indices
+from gd_completion.kernels import fps_pruned
+from gd_completion.sampling import resample_indices, voxel_first_indices
 
 # A track's fused partial is merged with one of its points per voxel of this size (normalised: 2 % of the length),
 # not with the network's input: measured on PandaSet-002 (docs/MODEL.md, "Track fusion: what more frames can give").

@@ -18,15 +18,17 @@ from gd_completion.association import BoxAssociator, track_identity
 from gd_completion.errors import DeviceError
 from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask, normalize
+from gd_completion.labels import DEFAULT_LABELS, LABEL_IDS
 from gd_completion.limits import FrameLimits, screen_boxes
 from gd_completion.merge import merge_with_fed, merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
-from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles, resample_indices
+from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
 from gd_completion.reuse import CachedCompletion, CompletionCache, Decision, ReuseSettings
+from gd_completion.sampling import resample_indices
 
-LABEL_IDS: dict[str, int] = {"car": 1, "van": 2, "truck": 3}
-DEFAULT_LABELS: tuple[str, ...] = ("car", "van", "truck")
+__all__ = ["COMPLETION_DTYPE", "DEFAULT_LABELS", "LABEL_IDS", "FrameCompletion", "FrameStats", "VehicleCompleter",
+           "check_device", "completion_to_structured", "default_threads"]
 
 COMPLETION_DTYPE = np.dtype(
     [("x", np.float32), ("y", np.float32), ("z", np.float32),

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from gd_completion.geometry import Box3D, crop_boxes, normalize
+from gd_completion.sampling import resample_indices
 
 
 @dataclass(frozen=True)
@@ -92,19 +93,6 @@ def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessin
         else:
             vehicles.append(CroppedVehicle(box, measured[keep], normalized[keep]))
     return vehicles, too_few
-
-
-def resample_indices(count: int, points: np.ndarray, n: int) -> np.ndarray:
-    """Indices giving exactly `n` of `count` points: farthest point sampling down, cyclic repetition up."""
-    if count <= 0:
-        raise ValueError("cannot resample an empty cloud")
-    if count <= n:
-        return np.arange(n) % count
-    import torch
-
-    from gd_completion.model.ops import farthest_point_sample  # compiled kernel on the CPU
-    cloud = torch.from_numpy(np.ascontiguousarray(points[:count], dtype=np.float32)).unsqueeze(0)
-    return farthest_point_sample(cloud, n)[0].numpy()
 
 
 def network_input(normalized: np.ndarray, n: int) -> np.ndarray:

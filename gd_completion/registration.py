@@ -21,6 +21,7 @@ import numpy as np
 
 from gd_completion.cell_grid import bucket_points
 from gd_completion.limits import check_positive_fields
+from gd_completion.sampling import evenly_strided
 
 __all__ = ["AlignSettings", "PlanarTransform", "align_planar"]
 
@@ -75,18 +76,6 @@ class PlanarTransform:
         x, y = out[:, 0] - self.tx, out[:, 1] - self.ty
         out[:, 0], out[:, 1] = c * x + s * y, -s * x + c * y
         return out
-
-
-def strided_indices(count: int, n: int) -> np.ndarray:
-    """At most `n` evenly spaced indices of `count` items, ascending (all of them when `count` <= `n`)."""
-    if count <= n:
-        return np.arange(count)
-    return np.linspace(0, count - 1, n).round().astype(np.intp)
-
-
-def evenly_strided(points: np.ndarray, n: int) -> np.ndarray:
-    """At most `n` evenly spaced rows of `points` (`points` itself when it has no more)."""
-    return points if len(points) <= n else points[strided_indices(len(points), n)]
 
 
 @numba.njit(cache=True, nogil=True)

@@ -22,13 +22,15 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from gd_completion.fusion import voxel_first_indices
 from gd_completion.limits import check_positive_fields
-from gd_completion.registration import strided_indices
+from gd_completion.sampling import strided_indices, voxel_first_indices
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 __all__ = ["CachedCompletion", "CompletionCache", "Decision", "ReuseSettings"]
 
@@ -122,6 +124,8 @@ class CompletionCache:
               measured: np.ndarray, source: np.ndarray) -> None:
         """Keep `points` (normalised, `measured` rows copying measurements) as track `key`'s completion, made at
         `stamp_ns` from the normalised points `source` of a box of `size`."""
+        from scipy.spatial import cKDTree  # on first use: `completer --help` stays light
+
         metres = _metres(source, size[0])
         reference = cKDTree(metres[voxel_first_indices(metres, self.settings.distance / 2)] if len(metres)
                             else np.full((1, 3), 1e6, np.float32))   # nothing measured: every point is new

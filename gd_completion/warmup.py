@@ -9,7 +9,7 @@ import time
 def main() -> int:
     """Complete one synthetic vehicle with the shipped weights: every kernel of a forward and of the merge is
     compiled (or found in numba's cache)."""
-    from gd_completion.model.kernels import kernels_cached
+    from gd_completion.kernels import kernels_cached
     from gd_completion.pipeline import VehicleCompleter
 
     start = time.perf_counter()

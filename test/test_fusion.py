@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 from test_preprocess import Recording
 
-from gd_completion.fusion import FusionLimits, TrackFusion, voxel_downsample
+from gd_completion.fusion import FusionLimits, TrackFusion
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.pipeline import FrameStats, VehicleCompleter
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
+from gd_completion.sampling import voxel_downsample
 
 SIZE = (4.5, 1.8, 1.5)
 SIDES = ("front", "left", "rear", "right", "top")

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gd_completion.fusion import voxel_first_indices
+from gd_completion.kernels import FPS_LEAF, _fps_cloud, _morton_order, fps, fps_pruned
 from gd_completion.merge import FUSED_POOL_VOXEL, merge_measured, merge_with_fed, merge_with_pool, mirrored
-from gd_completion.model.kernels import FPS_LEAF, _fps_cloud, _morton_order, fps, fps_pruned
-from gd_completion.preprocess import network_input, resample_indices
+from gd_completion.preprocess import network_input
+from gd_completion.sampling import resample_indices, voxel_first_indices
 
 
 def _plain_fps(xyz: np.ndarray, n: int) -> np.ndarray:

@@ -9,7 +9,8 @@ import pytest
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.pipeline import LABEL_IDS, VehicleCompleter, completion_to_structured
-from gd_completion.preprocess import Preprocessing, resample_indices
+from gd_completion.preprocess import Preprocessing
+from gd_completion.sampling import resample_indices
 
 
 def box_surface_points(box: Box3D, n: int, rng: np.random.Generator) -> np.ndarray:

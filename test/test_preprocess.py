@@ -11,7 +11,8 @@ from gd_completion.model import GGDNet
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, load_model, save_checkpoint
 from gd_completion.model.network import box_shape
 from gd_completion.pipeline import FrameStats, VehicleCompleter
-from gd_completion.preprocess import Preprocessing, crop_vehicles, network_input, resample_indices
+from gd_completion.preprocess import Preprocessing, crop_vehicles, network_input
+from gd_completion.sampling import resample_indices
 
 
 class Recording(torch.nn.Module):

@@ -44,3 +44,16 @@ def test_signal_after_ready_exits_0(tmp_path) -> None:
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(HANG_GUARD_S) == 0
     assert "Traceback" not in err.read_text()
+
+
+def test_help_imports_neither_torch_nor_rclpy_and_survives_a_closed_pipe(tmp_path) -> None:
+    env = {**os.environ, **ros_env(tmp_path), "PYTHONPATH": str(REPO)}
+    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "gd_completion.ros.completer_main", "--help"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and "track_ids (default 'associate'" in done.stdout
+    imported = {line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines() if line.startswith("import time")}
+    assert "gd_completion.ros.params" in imported
+    assert not {"torch", "rclpy", "gd_completion.pipeline"} & imported
+    piped = subprocess.run(f"{sys.executable} -m gd_completion.ros.completer_main --help | head -1", shell=True,
+                           cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    assert piped.stdout.startswith("usage: completer") and "Traceback" not in piped.stderr

@@ -9,7 +9,7 @@ import torch
 
 from gd_completion.merge import merge_with_fed, merge_with_pool, mirrored
 from gd_completion.model.network import GGDNet, box_shape
-from gd_completion.preprocess import resample_indices
+from gd_completion.sampling import resample_indices
 
 # Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s); "box_fill",
 # "template" and "mirror_template" are the box-only priors of `priors` (no learning); "ggd" is the network's

@@ -11,7 +11,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from gd_completion.preprocess import resample_indices
+from gd_completion.sampling import resample_indices
 
 PRIOR_POINTS = 2048
 BOX_FILL_SEED = 1

@@ -97,7 +97,7 @@ def farthest_point_sample(xyz: Tensor, n: int) -> Tensor:
     k = min(n, m)
     with torch.no_grad():
         if _compiled(xyz):
-            from . import kernels
+            from gd_completion import kernels
             idx = torch.from_numpy(kernels.fps(_as_numpy(xyz), k))
         else:
             idx = _fps_torch(xyz.detach().float(), k)
@@ -170,7 +170,7 @@ def ball_group(centers: Tensor, points: Tensor, radius: float, m: int, window: b
     b, q, _ = centers.shape
     mm = min(m, points.shape[1])
     if _compiled(centers):   # the same indices up to the order of exact ties, faster
-        from . import kernels
+        from gd_completion import kernels
         windowed = window and not _tiny(q, points.shape[1], BALL_BLOCK)
         idx = torch.from_numpy(kernels.ball_query(_as_numpy(centers), _as_numpy(points), mm, float(radius),
                                                   BALL_BLOCK, windowed))
@@ -234,7 +234,7 @@ def _nearest_k(query: Tensor, ref: Tensor, k: int, margin: float | None, block: 
     """k nearest ref points per query over the whole ref cloud (margin None) or the x-windows of `window_knn`."""
     with torch.no_grad():
         if _compiled(query):
-            from . import kernels
+            from gd_completion import kernels
             dist, idx = kernels.knn(_as_numpy(query), _as_numpy(ref), k, float(margin or 0.0), max(block, 1),
                                     margin is not None, exclude_self, float(cell))
             return torch.from_numpy(dist), torch.from_numpy(idx)

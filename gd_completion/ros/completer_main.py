@@ -20,6 +20,16 @@ def main(args: list[str] | None = None) -> int:
     """`ros2 run gd_completion completer` (see `gd_completion.ros.completer_node.main`)."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _leave_during_start_up)
+    argv = list(sys.argv[1:] if args is None else args)
+    from gd_completion.ros.params import print_help, wants_help  # no torch, no rclpy: --help answers at once
+
+    if wants_help(argv):
+        try:
+            print_help()
+            sys.stdout.flush()
+        except BrokenPipeError:   # `completer --help | head`: the reader left; not an error
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     from gd_completion.ros.completer_node import main as node_main
 
     return node_main(args, start_up_handler=_leave_during_start_up)

@@ -29,21 +29,22 @@ from gd_completion.association import AssociationSettings, BoxAssociator
 from gd_completion.box_messages import BoxSet, box_count, detections_to_boxes, markers_to_boxes
 from gd_completion.errors import GDCompletionError, PointCloud2Error
 from gd_completion.fusion import FusionLimits, TrackFusion
-from gd_completion.model.kernels import kernels_cached
+from gd_completion.kernels import kernels_cached
 from gd_completion.pipeline import VehicleCompleter, completion_to_structured
 from gd_completion.pointcloud2 import read_xyz
 from gd_completion.ros.cloud_messages import structured_to_msg
 from gd_completion.ros.params import (
-    LIVE_PARAMETERS,
     PARAMETERS,
     CompleterParams,
     ParameterError,
     check_model_sizes,
     declare_parameters,
     params_file_problems,
+    print_help,
     read_parameters,
     unknown_parameters,
     validate,
+    wants_help,
 )
 from gd_completion.stamp_sync import LatestSlot, Pair, StampSync, stamp_to_ns
 
@@ -355,28 +356,13 @@ class CompleterNode(Node):
         self.destroy_node()
 
 
-def print_help() -> None:
-    """`completer --help`: usage and every parameter with its default and whether it can change live."""
-    print(f"usage: completer [--help] [--ros-args -p NAME:=VALUE ... --params-file FILE]\n\n"
-          f"ROS 2 node `{NODE_NAME}` of gd_completion: completes the vehicles of PointCloud2 frames from their 3D "
-          "boxes and publishes dense vehicle clouds.\n\nparameters (live: applied on `ros2 param set`; the others "
-          "are read-only):")
-    for name, (default, description, _) in PARAMETERS.items():
-        print(f"  {name} (default {default!r}{', live' if name in LIVE_PARAMETERS else ''})\n      {description}")
-
-
-def _wants_help(argv: Sequence[str]) -> bool:
-    user = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
-    return any(a in ("-h", "--help") for a in user)
-
-
 def main(args: list[str] | None = None, start_up_handler: Callable[[int, Any], None] | None = None) -> int:
     """`ros2 run gd_completion completer`: spin until SIGINT/SIGTERM, then exit 0 within 2 s (a second signal,
     as `ros2 launch` sends, changes nothing); exit 2 with one line on a configuration error. A signal while the
     node is being constructed (model loading, warm-up) goes to `start_up_handler` (`completer_main`: exit 0 at
     once); without one it is acted on once the node is constructed."""
     argv = list(sys.argv[1:] if args is None else args)
-    if _wants_help(argv):
+    if wants_help(argv):
         print_help()
         return 0
     stop = threading.Event()

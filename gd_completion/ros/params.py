@@ -13,8 +13,8 @@ from gd_completion.association import TRACK_ID_MODES, AssociationSettings
 from gd_completion.box_messages import parse_class_map
 from gd_completion.errors import BoxError, GDCompletionError
 from gd_completion.fusion import FusionLimits
+from gd_completion.labels import LABEL_IDS
 from gd_completion.limits import FrameLimits
-from gd_completion.pipeline import LABEL_IDS
 from gd_completion.reuse import ReuseSettings
 from gd_completion.stamp_sync import FRESH_FRAME_AGE_S, SYNC_MAX_WAIT_S, SYNC_QUEUE_SIZE, SYNC_TOLERANCE_S
 
@@ -298,3 +298,19 @@ def parameters_markdown() -> str:
         text = yaml.safe_dump(default, default_flow_style=True, width=1000).strip().removesuffix("...").strip()
         rows.append(f"| `{name}` | `{text}` | {description} |")
     return "\n".join(rows)
+
+
+def print_help() -> None:
+    """`completer --help`: usage and every parameter with its default and whether it can change live."""
+    print("usage: completer [--help] [--ros-args -p NAME:=VALUE ... --params-file FILE]\n\n"
+          "ROS 2 node `completer` of gd_completion: completes the vehicles of PointCloud2 frames from their 3D "
+          "boxes and publishes dense vehicle clouds.\n\nparameters (live: applied on `ros2 param set`; the others "
+          "are read-only):")
+    for name, (default, description, _) in PARAMETERS.items():
+        print(f"  {name} (default {default!r}{', live' if name in LIVE_PARAMETERS else ''})\n      {description}")
+
+
+def wants_help(argv: Sequence[str]) -> bool:
+    """True when the user's arguments (before --ros-args) ask for -h or --help."""
+    user = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    return any(a in ("-h", "--help") for a in user)

@@ -129,8 +129,8 @@ def _outcome(job: BagJob, run: Callable[[], Any]) -> BagOutcome:
 def _local(jobs: list[BagJob], workers: int, model: str | None, options: dict[str, Any],
            bag_options: dict[str, Any]) -> Iterator[BagOutcome]:
     """Bags one after the other in this process; their frames on one shared FramePool of `workers` processes."""
+    from gd_completion.bags.completion import complete_bag
     from gd_completion.frame_pool import FramePool
-    from gd_completion.tools.complete import complete_bag
 
     with FramePool(workers, model, options) as pool:
         for job in jobs:
@@ -153,7 +153,7 @@ class BagWorker:
             self.error = error
 
     def complete(self, job: BagJob, bag_options: dict[str, Any]) -> BagOutcome:
-        from gd_completion.tools.complete import complete_bag
+        from gd_completion.bags.completion import complete_bag
 
         if self.error is not None:
             return BagOutcome(job, "failed", str(self.error))

@@ -1,0 +1,212 @@
+"""Bag completion: copy a bag byte for byte and add the completed vehicles of every cloud (`complete_bag`), as
+`gd-completion complete` and the batch engine (`tools/complete_many`) run it."""
+from __future__ import annotations
+
+import sys
+import time
+from collections import Counter
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gd_completion.bags.messages import pointcloud2_msg
+from gd_completion.bags.pairing import BagPairing, RecordedCloud
+from gd_completion.bags.provenance import completer_parameters, provenance, set_provenance
+from gd_completion.bags.reader import iter_raw, open_bag
+from gd_completion.bags.topics import default_output_topic, pick_topics
+from gd_completion.bags.typestore import POINTCLOUD2, serialize
+from gd_completion.bags.writer import add_connection, atomic_bag_writer, copy_connection, has_definition
+from gd_completion.errors import BagError, GDCompletionError
+from gd_completion.frame_pool import FramePool, InOrder
+from gd_completion.limits import OFFLINE_LIMITS
+from gd_completion.pointcloud2 import read_xyz, write_points
+from gd_completion.progress import progress_bar
+from gd_completion.stamp_sync import SYNC_TOLERANCE_S, SyncCounters
+
+
+@dataclass
+class CompletionSummary:
+    """What `complete` did; the counters have the names the node reports in /diagnostics."""
+
+    frames: int = 0  # completed clouds written: one per input cloud
+    copied_messages: int = 0
+    vehicles_completed: int = 0
+    skipped: Counter = field(default_factory=Counter)  # vehicles per reason (`skipped_<reason>` in the node)
+    ignored_labels: int = 0
+    nonfinite_points: int = 0
+    completions_run: int = 0      # vehicles the network completed
+    completions_reused: int = 0   # vehicles written from their track's cached completion (--reuse)
+    boxes_wrong_frame: int = 0
+    boxes_without_header: int = 0
+    sync: SyncCounters = field(default_factory=SyncCounters)
+    seconds: float = 0.0
+    output_topic: str = ""
+    not_copied: dict[str, int] = field(default_factory=dict)  # topic -> messages left out (--skip-unknown-types)
+
+    @property
+    def frames_without_boxes(self) -> int:
+        """Clouds the node would not have paired with boxes (their completion is empty)."""
+        return self.frames - self.sync.paired
+
+    def counters(self) -> dict[str, int]:
+        """Every counter under the node's diagnostics key."""
+        values = {"vehicles_completed": self.vehicles_completed, "ignored_labels": self.ignored_labels,
+                  **{f"skipped_{reason}": n for reason, n in sorted(self.skipped.items())},
+                  "boxes_wrong_frame": self.boxes_wrong_frame, "boxes_without_header": self.boxes_without_header,
+                  "nonfinite_points": self.nonfinite_points, "completions_run": self.completions_run,
+                  "completions_reused": self.completions_reused}
+        for key, n in self.sync.as_dict().items():
+            values["frames_paired" if key == "paired" else f"drop_{key}"] = n
+        return values
+
+    def text(self) -> str:
+        """Human-readable summary: the frames, then every non-zero counter."""
+        rate = self.frames / self.seconds if self.seconds > 0 else 0.0
+        counts = ", ".join(f"{k} {v}" for k, v in self.counters().items() if v and k != "vehicles_completed")
+        left_out = "".join(f"; {n} message{'s' if n != 1 else ''} of {topic} not copied (unknown type)"
+                           for topic, n in self.not_copied.items())
+        return (f"{self.frames} frames ({rate:.1f} frames/s, {self.seconds:.1f} s), "
+                f"{self.vehicles_completed} vehicles completed, {self.frames_without_boxes} frames without boxes; "
+                f"{counts or 'no other counts'}; {self.copied_messages} input messages copied{left_out}; "
+                f"completions on {self.output_topic}")
+
+    def add(self, stats: Any) -> None:
+        """Count one frame's FrameStats."""
+        self.frames += 1
+        self.vehicles_completed += int(stats.completed)
+        self.skipped.update(stats.skipped)
+        self.ignored_labels += stats.ignored_labels
+        self.nonfinite_points += stats.nonfinite_points
+        self.completions_run += stats.completions_run
+        self.completions_reused += stats.completions_reused
+
+
+def start_fusion(pool: FramePool, publish_fused_points: bool, align: bool = True) -> None:
+    """Give the pool's in-process completer a fresh track accumulator (one per bag); `align` False stores the
+    frames as their boxes place them (`FusionLimits.align` None)."""
+    from gd_completion.fusion import FusionLimits, TrackFusion
+
+    if pool.completer is None:
+        raise BagError("track fusion needs every frame of a bag in order in one process: use --workers 1")
+    pool.completer.fusion = TrackFusion(FusionLimits() if align else FusionLimits(align=None))
+    pool.completer.publish_fused_points = publish_fused_points
+
+
+def start_tracks(pool: FramePool, reuse: bool) -> None:
+    """Give the pool's in-process completer a fresh association of box ids (one per bag) and, with `reuse`, a fresh
+    completion cache (no frame budget: what is written never depends on the machine's load)."""
+    from gd_completion.association import BoxAssociator
+    from gd_completion.reuse import CompletionCache, ReuseSettings
+
+    if pool.completer is None:
+        raise BagError("track fusion and reuse need every frame of a bag in order in one process: use --workers 1")
+    pool.completer.associator = BoxAssociator()
+    pool.completer.cache = CompletionCache(ReuseSettings()) if reuse else None
+
+
+def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = None,
+                 boxes_topic: str | None = None, output_topic: str | None = None, model: str | None = None,
+                 storage: str = "mcap", completer: Any = None, overwrite: bool = False,
+                 progress: bool = True, workers: int = 1, sync_tolerance: float = SYNC_TOLERANCE_S,
+                 skip_unknown_types: bool = False, pool: FramePool | None = None, track_fusion: bool = False,
+                 publish_fused_points: bool = False, fusion_align: bool = True, reuse: bool = False,
+                 **completer_options: Any) -> CompletionSummary:
+    """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message.
+
+    Clouds and boxes are paired as the node pairs them (stamps within `sync_tolerance` seconds); a cloud the
+    node would leave unpaired gets an empty completion. Completions carry the cloud's header and bag timestamp.
+    `completer_options` go to `VehicleCompleter.from_checkpoint` (device, num_threads, min_points, labels,
+    limits: default `OFFLINE_LIMITS`, no time budget, so the output never depends on the machine's load).
+    `workers` > 1 completes frames in that many spawned processes; the output bag is the same as with
+    `workers=1`, message for message and in the same write order. An injected `completer` works only with
+    `workers=1`. A `pool` given is used (and left open) instead of one made from `workers`, `model`,
+    `completer_options` and `completer`, so many bags can share it. The bag's metadata records the package
+    version, the model's SHA-256 and the parameters.
+    `track_fusion`: each tracked vehicle (box id = track id) is completed from its points of all the bag's
+    frames so far (a fresh `fusion.TrackFusion` per bag; frames in order, so in this process only);
+    `publish_fused_points` writes the fused measured points instead of each frame's own; `fusion_align` False
+    turns off the alignment of each frame to its track (box jitter). `reuse`: a tracked vehicle's network
+    completion runs only when due (`reuse.CompletionCache`, default settings, no frame budget), as the node's
+    reuse. With either, the boxes get the track ids of the completer's `track_ids` (completer option; default
+    "message", the command's --track-ids associate) from a fresh association per bag.
+    A topic of a type with no stored definition and unknown here cannot be copied: BagError, unless
+    `skip_unknown_types`, which leaves it out with a warning on stderr (counted in `summary.not_copied`).
+    """
+    from gd_completion.model.checkpoint import DEFAULT_WEIGHTS
+    from gd_completion.pipeline import completion_to_structured
+
+    completer_options.setdefault("limits", OFFLINE_LIMITS)
+    summary = CompletionSummary()
+    start = time.perf_counter()
+    with open_bag(src) as reader:
+        cloud_topic, boxes_topic, boxes_type = pick_topics(reader, cloud_topic, boxes_topic)
+        output_topic = output_topic or default_output_topic(cloud_topic)
+        summary.output_topic = output_topic
+        if output_topic in {c.topic for c in reader.connections}:
+            raise BagError(f"{src}: output topic {output_topic} exists in the input bag; choose --output-topic")
+        pairing = BagPairing(cloud_topic, boxes_topic, boxes_type, tolerance_s=sync_tolerance, source=str(src))
+        copied = [c for c in reader.connections if has_definition(c) or not skip_unknown_types]
+        for conn in (c for c in reader.connections if c not in copied):
+            print(f"gd-completion complete: warning: {src}: skipping {conn.topic}: type {conn.msgtype} is unknown and "
+                  "the bag stores no definition; not copied", file=sys.stderr)
+            summary.not_copied[conn.topic] = summary.not_copied.get(conn.topic, 0) + conn.msgcount
+        total = sum(c.msgcount for c in reader.connections if c.topic == cloud_topic)
+        in_flight = 2 * (pool.workers if pool is not None else workers)
+        queue: InOrder[Any] = InOrder(max_in_flight=in_flight)  # memory stays flat on long bags
+        waiting = {}  # cloud index -> its slot in the queue, until its pairing is decided
+        try:
+            frames = nullcontext(pool) if pool is not None else FramePool(workers, model, completer_options, completer)
+            with (frames as pool,
+                  atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer,
+                  progress_bar("complete", "frames", total=total, quiet=not progress) as bar):
+                conns = {conn.id: copy_connection(writer, conn, src) for conn in copied}
+                out_conn = add_connection(writer, output_topic, POINTCLOUD2)
+                stamped = track_fusion or reuse
+                if stamped:
+                    start_tracks(pool, reuse)
+                if track_fusion:
+                    start_fusion(pool, publish_fused_points, fusion_align)
+
+                def submit(decided: list[tuple[RecordedCloud, Any]]) -> None:
+                    """Submit the clouds whose boxes are known (or known to be none)."""
+                    for cloud, box_set in decided:
+                        boxes, wrong_frame = cloud.boxes_in_frame(box_set)
+                        summary.boxes_wrong_frame += wrong_frame
+                        queue.start(waiting.pop(cloud.index), pool.submit(read_xyz(cloud.msg), boxes,
+                                                                          cloud.stamp_ns if stamped else None))
+
+                def write(ready: Any) -> None:
+                    """Copies as they are; a completion right after its cloud, with its header and bag time."""
+                    for item, result in ready:
+                        if isinstance(item, RecordedCloud):
+                            summary.add(result.stats)
+                            msg = pointcloud2_msg(write_points(completion_to_structured(result)),
+                                                  item.msg.header.frame_id, item.stamp_ns)
+                            writer.write(out_conn, item.bag_ns, serialize(msg, POINTCLOUD2))
+                            bar.update(1)
+                        else:
+                            writer.write(*item)
+                            summary.copied_messages += 1
+
+                for conn, timestamp, raw in iter_raw(reader, copied):
+                    queue.put((conns[conn.id], timestamp, raw))
+                    cloud, decided = pairing.feed(conn.topic, timestamp, raw)
+                    if cloud is not None:
+                        waiting[cloud.index] = queue.hold(cloud)
+                    submit(decided)
+                    write(queue.ready())
+                submit(pairing.close())
+                write(queue.rest())
+                parameters = {"completer": pool.run(completer_parameters).result(), "cloud_topic": cloud_topic,
+                              "boxes_topic": boxes_topic, "output_topic": output_topic,
+                              "sync_tolerance": sync_tolerance}
+                set_provenance(writer, provenance("complete", model or DEFAULT_WEIGHTS, parameters))
+        except BrokenProcessPool as error:
+            raise GDCompletionError(f"{src}: a completion worker process died ({error}); no output written "
+                                    "(out of memory? try fewer --workers)") from error
+    summary.sync = pairing.counters
+    summary.boxes_without_header = pairing.boxes_without_header
+    summary.seconds = time.perf_counter() - start
+    return summary
