@@ -69,7 +69,7 @@ def write_points_file(path: str | os.PathLike, table: np.ndarray, *, overwrite: 
     path = Path(path)
     suffix = suffix_of(path, WRITE_SUFFIXES, "output")
     refuse_existing(path, overwrite)
-    packed = table.astype(np.dtype([(name, table.dtype[name].newbyteorder("<")) for name in table.dtype.names]))
+    packed = table.astype(np.dtype([(name, table.dtype[name].newbyteorder("<")) for name in _names(table.dtype)]))
     with atomic_path(path) as tmp, open(tmp, "wb") as out:
         if suffix == ".npy":
             np.save(out, packed, allow_pickle=False)
@@ -80,15 +80,15 @@ def write_points_file(path: str | os.PathLike, table: np.ndarray, *, overwrite: 
 
 
 def _ply_header(table: np.ndarray) -> str:
-    props = "".join(f"property {_PLY_NAMES[table.dtype[name].str[1:]]} {name}\n" for name in table.dtype.names)
+    props = "".join(f"property {_PLY_NAMES[table.dtype[name].str[1:]]} {name}\n" for name in _names(table.dtype))
     return (f"ply\nformat binary_little_endian 1.0\ncomment written by gd_completion\n"
             f"element vertex {len(table)}\n{props}end_header\n")
 
 
 def _pcd_header(table: np.ndarray) -> str:
-    kinds = [table.dtype[name] for name in table.dtype.names]
+    kinds = [table.dtype[name] for name in _names(table.dtype)]
     return ("# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
-            f"FIELDS {' '.join(table.dtype.names)}\n"
+            f"FIELDS {' '.join(_names(table.dtype))}\n"
             f"SIZE {' '.join(str(k.itemsize) for k in kinds)}\n"
             f"TYPE {' '.join(k.kind.upper() for k in kinds)}\n"
             f"COUNT {' '.join('1' for _ in kinds)}\n"
@@ -175,11 +175,18 @@ def _ply_vertices(raw: bytes, body: int, offset: int, count: int, dtype: np.dtyp
         values = np.array(b" ".join(lines).split(), dtype=np.float64)
     except ValueError as error:
         raise DataFormatError(f"{path}: bad number in PLY vertex data ({error})") from None
-    width = len(dtype.names)
+    width = len(_names(dtype))
     if len(lines) < count or values.size != count * width:
         raise DataFormatError(f"{path}: PLY ascii data does not hold {count} vertices of {width} values")
     table = values.reshape(count, width)
     out = np.empty(count, dtype=dtype)
-    for k, name in enumerate(dtype.names):
+    for k, name in enumerate(_names(dtype)):
         out[name] = table[:, k]
     return out
+
+
+def _names(dtype: np.dtype) -> tuple[str, ...]:
+    """The field names of a structured dtype (ValueError for a plain one)."""
+    if dtype.names is None:
+        raise ValueError(f"not a structured dtype: {dtype}")
+    return dtype.names

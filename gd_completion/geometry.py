@@ -25,7 +25,7 @@ def _triple(value: Sequence[float], what: str) -> tuple[float, float, float]:
         raise BoxError(f"Box3D {what} must be three numbers, got {value!r}") from exc
     if len(out) != 3:
         raise BoxError(f"Box3D {what} must be three numbers, got {len(out)}: {value!r}")
-    return out  # type: ignore[return-value]
+    return out
 
 
 @dataclass(frozen=True)
@@ -36,8 +36,8 @@ class Box3D:
     and are not checked here: use `box_problem` before using a box from outside.
     """
 
-    center: tuple[float, float, float]
-    size: tuple[float, float, float]
+    center: tuple[float, ...]   # (x, y, z); any 3 numbers are stored as a tuple of 3 floats
+    size: tuple[float, ...]     # (length, width, height)
     yaw: float = 0.0
     label: str = "car"
     instance_id: int = -1

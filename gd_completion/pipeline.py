@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -161,7 +162,8 @@ class VehicleCompleter:
         if torch.device(device).type == "cpu":
             torch.set_num_threads(1)
         model, preprocessing = load_checkpoint(path or DEFAULT_WEIGHTS, device=device)
-        overrides = {k: v for k, v in (("min_points", min_points), ("crop_margin", crop_margin)) if v is not None}
+        overrides: dict[str, Any] = {k: v for k, v in (("min_points", min_points), ("crop_margin", crop_margin))
+                                     if v is not None}
         return cls(model, preprocessing=replace(preprocessing, **overrides), device=device,
                    threads=int(num_threads or default_threads()), **options)
 
@@ -211,8 +213,8 @@ class VehicleCompleter:
         `measured_merge`, the merged points of `merge.merge_with_fed`)."""
         if not len(partials):
             return np.zeros((0, self.num_output, 3), np.float32)
-        return np.stack([points for points, _ in self._complete_all(partials, sizes, self.measured_merge, math.inf,
-                                                                    None)])
+        done = self._complete_all(partials, sizes, self.measured_merge, math.inf, None)
+        return np.stack([result[0] for result in done if result is not None])   # no deadline: all are done
 
     def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None, merge: bool,
                       deadline: float, cancel: threading.Event | None, fused: Sequence[bool] | None = None,
@@ -225,12 +227,12 @@ class VehicleCompleter:
             raise ValueError(f"{len(partials)} partial clouds but {len(sizes)} box sizes")
 
         def one(item: tuple[int, np.ndarray, Sequence[float] | None, bool]) -> tuple[np.ndarray, np.ndarray] | None:
-            index, *task = item
+            index, partial, size, fused = item
             started = time.monotonic()
             expected = self._vehicle_seconds if finish_by and index > 0 else 0.0
             if started + expected > deadline or (cancel is not None and cancel.is_set()):
                 return None
-            result = self._complete_one(*task, merge)
+            result = self._complete_one(partial, size, fused, merge)
             self._vehicle_seconds += 0.2 * (time.monotonic() - started - self._vehicle_seconds)
             return result
         run = self._pool.map if self._pool is not None else map
@@ -285,7 +287,7 @@ class VehicleCompleter:
         boxes = self._with_track_ids(given, stamp_ns)
         vehicles = self.prepare(points, boxes, stats)
         fusion = self.fusion if stamp_ns is not None else None
-        if fusion is not None:
+        if fusion is not None and stamp_ns is not None:
             fusion.expire(stamp_ns)
             vehicles = fusion.update(stamp_ns, vehicles, executor=self._pool)
         outputs = self._completions(vehicles, stamp_ns, deadline, cancel, stats, include)
@@ -326,8 +328,9 @@ class VehicleCompleter:
         """Per vehicle, its completion (normalised) and per point its `generated` flag, or None when it is skipped
         (counted in `stats`): the network's for the vehicles due (all of them without reuse), the cached one for
         the others."""
-        cache = self.cache if stamp_ns is not None else None
-        decisions = self._decisions(vehicles, stamp_ns, cache)
+        stamp = stamp_ns if stamp_ns is not None else 0
+        cache = self.cache if stamp_ns is not None else None   # reuse needs the stream's stamps
+        decisions = self._decisions(vehicles, stamp, cache)
         due = [i for i, d in enumerate(decisions) if d.due]
         run_deadline = deadline
         if cache is not None:
@@ -347,7 +350,7 @@ class VehicleCompleter:
             if result is not None:
                 stats.completions_run += 1
                 if cache is not None and vehicle.box.instance_id >= 0:
-                    cache.store(vehicle.box.instance_id, stamp_ns, vehicle.box.size, result[0], result[1] >= 0,
+                    cache.store(vehicle.box.instance_id, stamp, vehicle.box.size, result[0], result[1] >= 0,
                                 vehicle.normalized)
                 outputs.append(self._fresh_output(vehicle, *result, include))
             elif decision.cached is not None and not cancelled:
@@ -360,7 +363,7 @@ class VehicleCompleter:
                 outputs.append(None)
         return outputs
 
-    def _decisions(self, vehicles: Sequence[CroppedVehicle], stamp_ns: int | None,
+    def _decisions(self, vehicles: Sequence[CroppedVehicle], stamp_ns: int,
                    cache: CompletionCache | None) -> list[Decision]:
         """Per vehicle: is its network completion due (always without a cache, a track id or for a repeated id)."""
         always = Decision(True, math.inf, "none", None)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -22,7 +22,8 @@ DATATYPE_NAMES = {
     INT8: "INT8", UINT8: "UINT8", INT16: "INT16", UINT16: "UINT16",
     INT32: "INT32", UINT32: "UINT32", FLOAT32: "FLOAT32", FLOAT64: "FLOAT64",
 }
-_DATATYPE_TO_NUMPY = {
+ByteOrder = Literal["<", ">"]
+_DATATYPE_TO_NUMPY: dict[int, np.dtype] = {
     INT8: np.dtype("i1"), UINT8: np.dtype("u1"), INT16: np.dtype("i2"), UINT16: np.dtype("u2"),
     INT32: np.dtype("i4"), UINT32: np.dtype("u4"), FLOAT32: np.dtype("f4"), FLOAT64: np.dtype("f8"),
 }
@@ -36,7 +37,7 @@ class FieldSpec(NamedTuple):
     name: str
     offset: int
     datatype: int
-    count: int = 1
+    count: int = 1  # type: ignore[assignment]  # PointField's name; shadows tuple.count, unused here
 
 
 @dataclass
@@ -95,7 +96,7 @@ def _normalise_fields(fields: Iterable[Any], point_step: int) -> list[FieldSpec]
     return specs
 
 
-def _field_format(spec: FieldSpec, byteorder: str) -> np.dtype:
+def _field_format(spec: FieldSpec, byteorder: ByteOrder) -> np.dtype:
     base = _DATATYPE_TO_NUMPY[spec.datatype].newbyteorder(byteorder)
     return np.dtype((base, (spec.count,))) if spec.count > 1 else base
 
@@ -106,7 +107,7 @@ def cloud_dtype(fields: Sequence[Any], point_step: int, *, is_bigendian: bool = 
     if point_step < 0:
         raise PointCloud2Error(f"PointCloud2 point_step {point_step} is negative")
     specs = _normalise_fields(fields, point_step)
-    order = ">" if is_bigendian else "<"
+    order: ByteOrder = ">" if is_bigendian else "<"
     try:
         return np.dtype({
             "names": [s.name for s in specs],
@@ -192,7 +193,7 @@ def read_xyz(msg: Any) -> np.ndarray:
         if s.count != 1:
             raise PointCloud2Error(f"PointCloud2 field '{s.name}' has count {s.count}; x/y/z need count 1")
     out = np.empty((h, w, 3), dtype=np.float32)
-    order = ">" if d.bigendian else "<"
+    order: ByteOrder = ">" if d.bigendian else "<"
     base = _DATATYPE_TO_NUMPY[xyz[0].datatype]
     if (all(s.datatype == xyz[0].datatype for s in xyz)
             and xyz[1].offset == xyz[0].offset + base.itemsize
@@ -214,7 +215,7 @@ def _fields_from_dtype(dtype: np.dtype) -> list[FieldSpec]:
         raise PointCloud2Error(f"write_points needs a structured array, got dtype {dtype}")
     specs = []
     for name in dtype.names:
-        fdt, offset = dtype.fields[name][:2]
+        fdt, offset = dtype.fields[name][:2]  # type: ignore[index]  # a structured dtype: fields is set
         base, shape = (fdt.subdtype if fdt.subdtype is not None else (fdt, ()))
         code = _NUMPY_TO_DATATYPE.get((base.kind, base.itemsize)) if base.kind in "iuf" else None
         if code is None:

@@ -63,7 +63,7 @@ class CachedCompletion:
 
     points: np.ndarray          # (n, 3) float32, normalised box frame of the box it was made in
     measured: np.ndarray        # (n,) bool: rows that copy the measured points it was made from
-    size: tuple[float, float, float]
+    size: tuple[float, ...]
     stamp_ns: int
     reference: cKDTree          # the measured points it was made from, metres in the box frame (voxel-thinned)
     last_seen_ns: int
@@ -98,7 +98,7 @@ class CompletionCache:
     def __len__(self) -> int:
         return len(self._entries)
 
-    def decide(self, key: int, stamp_ns: int, size: tuple[float, float, float], current: np.ndarray) -> Decision:
+    def decide(self, key: int, stamp_ns: int, size: tuple[float, ...], current: np.ndarray) -> Decision:
         """Decision for track `key` whose box has `size` and whose points this frame are `current` (normalised by
         that box)."""
         s = self.settings
@@ -120,7 +120,7 @@ class CompletionCache:
         due = urgency >= 1.0
         return Decision(due, urgency, reason if due else "", entry)
 
-    def store(self, key: int, stamp_ns: int, size: tuple[float, float, float], points: np.ndarray,
+    def store(self, key: int, stamp_ns: int, size: tuple[float, ...], points: np.ndarray,
               measured: np.ndarray, source: np.ndarray) -> None:
         """Keep `points` (normalised, `measured` rows copying measurements) as track `key`'s completion, made at
         `stamp_ns` from the normalised points `source` of a box of `size`."""

@@ -150,17 +150,17 @@ def complete_cloud_report(points: np.ndarray, boxes: Sequence[Box3D | Sequence[A
     from gd_completion.pipeline import completion_to_structured
 
     xyz = cloud_xyz(points)
-    boxes = [as_box(item, k + 1) for k, item in enumerate(boxes)]
-    ids = [box.instance_id for box in boxes]
+    parsed = [as_box(item, k + 1) for k, item in enumerate(boxes)]
+    ids = [box.instance_id for box in parsed]
     if len(set(ids)) != len(ids):
         raise BoxError(f"boxes: instance ids are not unique ({sorted(i for i in set(ids) if ids.count(i) > 1)})")
     engine = completer(model, device=device, threads=threads, min_points=min_points,
                        include_input_points=include_input_points)
-    result = engine.complete_frame(xyz, boxes)
+    result = engine.complete_frame(xyz, parsed)
     table = completion_to_structured(result)
     finite = xyz[finite_mask(xyz)]
     skipped = [(box, f"label {box.label!r} is not completed (only {', '.join(VEHICLES)})")
-               for box in boxes if box.label not in engine.labels]
+               for box in parsed if box.label not in engine.labels]
     for box, reason in result.stats.skipped_boxes:
         if reason == "degenerate_box":
             text = f"unusable box: {box_problem(box)}"

@@ -137,7 +137,8 @@ class StampSync(Generic[C, B]):
 
     @staticmethod
     def _evict(buffer: deque, keep: Callable[[_Entry], bool]) -> list[_Entry]:
-        kept, dropped = [], []
+        kept: list[_Entry] = []
+        dropped: list[_Entry] = []
         for e in buffer:
             (kept if keep(e) else dropped).append(e)
         if dropped:

@@ -20,7 +20,7 @@ import torch
 from torch.nn.functional import smooth_l1_loss
 
 from .errors import CheckpointError, DataFormatError
-from .model.box_refiner import FRAME_NAMES, frame_targets
+from .model.box_refiner import FRAME_NAMES, BoxRefiner, frame_targets
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.config import GGDConfig
 from .model.network import GGDNet, box_shape
@@ -116,21 +116,28 @@ def mirrored_batch(partial: torch.Tensor, target: torch.Tensor, flip: torch.Tens
     return partial, target
 
 
+def _refiner(model: GGDNet) -> BoxRefiner:
+    """The model's box refiner (CheckpointError when it has none)."""
+    if model.refiner is None:
+        raise CheckpointError("this model has no box refiner")
+    return model.refiner
+
+
 def frame_loss(model: GGDNet, partial: torch.Tensor, shape: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Smooth L1 between the refiner's frame and the true one, in `box_refiner.FRAME_UNITS`."""
-    units = model.refiner.units
-    return smooth_l1_loss(model.refiner.vector(partial, shape) / units, target / units)
+    units = _refiner(model).units
+    return smooth_l1_loss(_refiner(model).vector(partial, shape) / units, target / units)
 
 
 @torch.inference_mode()
 def validate(model: GGDNet, data: FrameData, device: torch.device | str, batch: int = 256) -> dict[str, float]:
     """Loss and the RMS error of each frame value in FRAME_UNITS, the refiner's and the given box's."""
-    was_training = model.refiner.training
-    model.refiner.eval()
-    preds = [model.refiner.vector(data.partial[s:s + batch].to(device), data.shape[s:s + batch].to(device)).cpu()
+    was_training = _refiner(model).training
+    _refiner(model).eval()
+    preds = [_refiner(model).vector(data.partial[s:s + batch].to(device), data.shape[s:s + batch].to(device)).cpu()
              for s in range(0, len(data), batch)]
-    model.refiner.train(was_training)
-    pred, units = torch.cat(preds), model.refiner.units.cpu()
+    _refiner(model).train(was_training)
+    pred, units = torch.cat(preds), _refiner(model).units.cpu()
     rms = ((pred - data.target) ** 2).mean(0).sqrt() / units
     given = (data.target ** 2).mean(0).sqrt() / units
     return {"loss": float(smooth_l1_loss(pred / units, data.target / units)),
@@ -158,8 +165,8 @@ def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, 
     if steps_per_epoch < 1:
         raise DataFormatError(f"box refiner data: {len(train_data)} samples, fewer than one batch")
     model.requires_grad_(False)
-    model.refiner.requires_grad_(True)
-    optimizer = torch.optim.Adam(model.refiner.parameters(), lr=settings.lr)
+    _refiner(model).requires_grad_(True)
+    optimizer = torch.optim.Adam(_refiner(model).parameters(), lr=settings.lr)
     total_steps = settings.epochs * steps_per_epoch
     start_epoch, history, best = 0, [], math.inf
     if resume and last_path.is_file():
@@ -176,19 +183,19 @@ def train_refiner(base: str | Path, train_data: FrameData, val_data: FrameData, 
         log.info("resuming from %s at epoch %d", last_path, start_epoch)
     model.eval()          # the completion network's batch norms stay as they are
     log.info("training the box refiner (%d parameters) on %d samples, validating on %d, device %s",
-             sum(p.numel() for p in model.refiner.parameters()), len(train_data), len(val_data), device)
+             sum(p.numel() for p in _refiner(model).parameters()), len(train_data), len(val_data), device)
     for epoch in range(start_epoch, settings.epochs):
         g = torch.Generator().manual_seed(settings.seed * 100003 + epoch)   # resumable shuffling and mirroring
         perm = torch.randperm(len(train_data), generator=g)
         flips = torch.rand(len(train_data), generator=g) < 0.5
-        model.refiner.train(settings.norm_train_epochs is None or epoch < settings.norm_train_epochs)
+        _refiner(model).train(settings.norm_train_epochs is None or epoch < settings.norm_train_epochs)
         total, skipped, t0 = 0.0, 0, time.monotonic()
         for step in range(steps_per_epoch):
             idx = perm[step * settings.batch_size:(step + 1) * settings.batch_size]
             partial, target = mirrored_batch(train_data.partial[idx], train_data.target[idx], flips[idx])
             loss = frame_loss(model, partial.to(device), train_data.shape[idx].to(device), target.to(device))
             optimizer.zero_grad(set_to_none=True)
-            if not _backward(model.refiner, loss, 0.0):
+            if not _backward(_refiner(model), loss, 0.0):
                 skipped = _skip_step(epoch, step + 1, skipped, settings.max_skipped_steps)
                 continue
             for group in optimizer.param_groups:

@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 import torch
 
+from gd_completion import kernels
 from gd_completion.cell_grid import bucket_points
 from gd_completion.evaluation.baselines import published_outputs
-from gd_completion.model import chamfer_l2, farthest_point_sample, kernels
+from gd_completion.model import chamfer_l2, farthest_point_sample
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import box_shape
 from gd_completion.model.ops import _nearest_k, ball_group, knn_graph, torch_kernels, window_knn

@@ -155,7 +155,7 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
         total = sum(c.msgcount for c in reader.connections if c.topic == cloud_topic)
         in_flight = 2 * (pool.workers if pool is not None else workers)
         queue: InOrder[Any] = InOrder(max_in_flight=in_flight)  # memory stays flat on long bags
-        waiting = {}  # cloud index -> its slot in the queue, until its pairing is decided
+        waiting: dict[int, Any] = {}  # cloud index -> its slot in the queue, until its pairing is decided
         try:
             frames = nullcontext(pool) if pool is not None else FramePool(workers, model, completer_options, completer)
             with (frames as pool,

@@ -60,7 +60,7 @@ def _pose(box: Box3D) -> Any:
     )
 
 
-def _vector3(values: Sequence[float]) -> Any:
+def _vector3(values: Sequence[float] | np.ndarray) -> Any:
     return message_class("geometry_msgs/msg/Vector3")(x=float(values[0]), y=float(values[1]), z=float(values[2]))
 
 

@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from functools import lru_cache, wraps
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from gd_completion.atomic import make_folder, output_error, refuse_existing
 from gd_completion.bags.typestore import require_type, typestore
@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from rosbags.rosbag2 import Writer
 
 STORAGES = ("mcap", "sqlite3")
-BAG_VERSION = 9
+BAG_VERSION: Literal[9] = 9
 
 
 def storage_plugin(storage: str):
@@ -71,7 +71,7 @@ def atomic_bag_writer(path: str | Path, *, storage: str = "mcap", overwrite: boo
         raise output_error(final, error) from error
     tmp_bag = scratch / final.name
     writer = _writer_class()(tmp_bag, version=BAG_VERSION, storage_plugin=plugin)
-    writer.final = final
+    writer.final = final  # type: ignore[attr-defined]  # read by the _writer_class subclass's error wrapper
     try:
         writer.open()
         yield writer

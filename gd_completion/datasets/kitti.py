@@ -234,16 +234,24 @@ def read_tracklets(path: str | Path) -> dict[int, list[Box3D]]:
     for track_id, item in enumerate(tracklets.findall("item")):
         try:
             kind = item.findtext("objectType", "")
-            h, w, l = (float(item.findtext(tag)) for tag in ("h", "w", "l"))
-            first = int(item.findtext("first_frame"))
+            h, w, l = (float(_text(item, tag)) for tag in ("h", "w", "l"))
+            first = int(_text(item, "first_frame"))
             poses = item.find("poses")
             for k, pose in enumerate(poses.findall("item") if poses is not None else []):
-                tx, ty, tz, rz = (float(pose.findtext(tag)) for tag in ("tx", "ty", "tz", "rz"))
+                tx, ty, tz, rz = (float(_text(pose, tag)) for tag in ("tx", "ty", "tz", "rz"))
                 frames.setdefault(first + k, []).append(
                     Box3D((tx, ty, tz + h / 2.0), (l, w, h), rz, normalise_label(kind), track_id))
         except (TypeError, ValueError) as error:
             raise DataFormatError(f"{path}: tracklet {track_id}: bad value: {error}") from error
     return frames
+
+
+def _text(element: ET.Element, tag: str) -> str:
+    """The text of `element`'s child `tag`; TypeError naming it when it is missing."""
+    text = element.findtext(tag)
+    if text is None:
+        raise TypeError(f"<{tag}> missing")
+    return text
 
 
 def iter_raw_frames(drive: str | Path, *, limit: int | None = None) -> Iterator[DatasetFrame]:

@@ -63,7 +63,7 @@ def association_agreement(root: str | Path, *, sensor: int = 0, labels: Sequence
     for frame in per_frame:
         for uuid, track in frame.items():
             ids_by_uuid.setdefault(uuid, Counter())[track] += 1
-    boxes = sum(len(f) for f in per_frame)
+    count = sum(len(f) for f in per_frame)
     majority = sum(c.most_common(1)[0][1] for c in ids_by_uuid.values())
-    return AssociationResult(len(per_frame), boxes, true_links, kept_links, links, wrong,
-                             majority / boxes if boxes else float("nan"))
+    return AssociationResult(len(per_frame), count, true_links, kept_links, links, wrong,
+                             majority / count if count else float("nan"))

@@ -42,7 +42,7 @@ def _as_batch(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray]) -> tupl
     if isinstance(partial, np.ndarray) and partial.ndim == 3 and partial.shape[1] == model.config.num_input:
         return torch.from_numpy(partial.astype(np.float32)), False
     single = isinstance(partial, np.ndarray) and partial.ndim == 2
-    clouds = [partial] if single else list(partial)
+    clouds: list[np.ndarray] = [partial] if single else list(partial)  # type: ignore[list-item]
     return torch.from_numpy(_resampled(clouds, model.config.num_input)[0]), single
 
 

@@ -49,7 +49,7 @@ class FusedTrack:
     frames: list[int] = field(default_factory=list)
     single: list[np.ndarray] = field(default_factory=list)  # normalised (M, 3), every frame
     fused: list[np.ndarray] = field(default_factory=list)   # normalised fused partial, first `max_frames` frames
-    sizes: list[tuple[float, float, float]] = field(default_factory=list)  # box (length, width, height) per frame
+    sizes: list[tuple[float, ...]] = field(default_factory=list)  # box (length, width, height) per frame
 
     def aggregate(self) -> np.ndarray:
         """All frames' points in the box frame (normalised): the multi-frame reference."""
@@ -165,8 +165,8 @@ def consistency(completions: Sequence[np.ndarray], frames: Sequence[int]) -> lis
     return [float(v) for v in chamfer(a, b)]
 
 
-def library_oracle(reference: np.ndarray, measured: np.ndarray, size: Sequence[float],
-                   library: Sequence[tuple[np.ndarray, Sequence[float]]], n: int = PRIOR_POINTS) -> float:
+def library_oracle(reference: np.ndarray, measured: np.ndarray, size: np.ndarray,
+                   library: Sequence[tuple[np.ndarray, np.ndarray]], n: int = PRIOR_POINTS) -> float:
     """Coverage error (unscaled) of the best of the outputs "`measured` (normalised), its mirror image and one
     library shape, thinned to `n` points by farthest point sampling", chosen knowing `reference`: an oracle, not
     a method. Each library entry is a vehicle's points (normalised by its own box) and its box size, stretched
@@ -177,11 +177,12 @@ def library_oracle(reference: np.ndarray, measured: np.ndarray, size: Sequence[f
     return min(errors, default=float("nan"))
 
 
-def stretched(shape: np.ndarray, shape_size: Sequence[float], size: Sequence[float]) -> np.ndarray:
+def stretched(shape: np.ndarray, shape_size: Sequence[float] | np.ndarray, size: Sequence[float] | np.ndarray
+              ) -> np.ndarray:
     """(M, 3) float32: a vehicle's points, normalised by its own box of `shape_size`, stretched per axis to the
     normalised frame of a box of `size` (both (length, width, height))."""
-    size, shape_size = np.asarray(size, np.float64), np.asarray(shape_size, np.float64)
-    return np.asarray(shape, np.float32) * ((size / size[0]) / (shape_size / shape_size[0])).astype(np.float32)
+    target, source = np.asarray(size, np.float64), np.asarray(shape_size, np.float64)
+    return np.asarray(shape, np.float32) * ((target / target[0]) / (source / source[0])).astype(np.float32)
 
 
 def shape_library(tracks: dict[int, FusedTrack], references: dict[int, np.ndarray | None]
@@ -208,7 +209,7 @@ def load_frames(sequence: PandaSetSequence, uuids: set[str], prep: Preprocessing
     eye, zero = np.eye(3), np.zeros(3)
     out: list[tuple[int, list[CroppedVehicle]]] = []
     for index in (sequence.frame_indices() if frames is None else frames):
-        records = {}
+        records: dict[str, dict] = {}
         for r in sequence.cuboids(index):
             uuid = str(r.get("uuid"))
             if uuid in uuids and int(r.get("cuboids.sensor_id", -1)) in (-1, sensor):
@@ -375,9 +376,9 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
             if track.stationary != group:
                 continue
             frames_used = [track.frames[p] for p in steady]
-            one = consistency([single_done[(i, p)] for p in steady], frames_used)
-            vehicles += bool(one)
-            single_cd += one
+            pairs = consistency([single_done[(i, p)] for p in steady], frames_used)
+            vehicles += bool(pairs)
+            single_cd += pairs
             fused_cd += consistency([fused_done[(i, p)] for p in steady], frames_used)
             single_net += consistency([single_network[(i, p)] for p in steady], frames_used)
             fused_net += consistency([fused_network[(i, p)] for p in steady], frames_used)

@@ -297,7 +297,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     sizes = np.array([t.boxes[k].size for t, k in meta], np.float64).reshape(-1, 3)
     clean = published_outputs(model, partials, sizes, max_batch=max_batch)
     noisy_meta = [i for i, (t, k) in enumerate(meta) if noise is not None and t.noisy[k] is not None]
-    noisy_in = [meta[i][0].noisy[meta[i][1]] for i in noisy_meta]
+    noisy_in = [pair for i in noisy_meta if (pair := meta[i][0].noisy[meta[i][1]]) is not None]
     noisy = published_outputs(model, [p for p, _ in noisy_in],
                               np.array([b.size for _, b in noisy_in], np.float64).reshape(-1, 3), max_batch=max_batch)
     noisy_nets = {i: (noisy.generated[j], noisy.completion[j], noisy.published[j]) for j, i in enumerate(noisy_meta)}
@@ -324,10 +324,10 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             item.recall[name], item.f_score[name] = two.recall, two.f_score
             item.output_points[name] = len(out)
         if i in noisy_nets:
-            noisy_partial, shaken = track.noisy[k]
-            noisy = _method_outputs(noisy_partial, shaken.size, n_out, *noisy_nets[i])
-            stacked = reframe(np.concatenate([noisy[n] for n in BASELINE_NAMES]), shaken, box)
-            bounds = np.cumsum([0] + [len(noisy[n]) for n in BASELINE_NAMES])
+            noisy_partial, shaken = track.noisy[k]  # type: ignore[misc]  # k is in noisy_nets: not None
+            shaken_outputs = _method_outputs(noisy_partial, shaken.size, n_out, *noisy_nets[i])
+            stacked = reframe(np.concatenate([shaken_outputs[n] for n in BASELINE_NAMES]), shaken, box)
+            bounds = np.cumsum(np.array([0] + [len(shaken_outputs[n]) for n in BASELINE_NAMES]))
             for j, name in enumerate(BASELINE_NAMES):
                 out = stacked[bounds[j]:bounds[j + 1]]
                 item.noisy_coverage[name] = float(nearest_sq(ref_random, out).mean()) * COVERAGE_SCALE
@@ -348,7 +348,7 @@ def _method_outputs(partial: np.ndarray, size: Sequence[float], n_out: int, gene
                     completion: np.ndarray, merged: np.ndarray) -> dict[str, np.ndarray]:
     """Every method's output (`BASELINE_NAMES`) for one normalised partial and its box `size`, given the
     network's generation-only, completion and merged outputs."""
-    return {"input": partial, "mirror": mirror_symmetry(partial), **prior_outputs(partial, size, n_out),
+    return {"input": partial, "mirror": mirror_symmetry(partial), **prior_outputs(partial, np.asarray(size), n_out),
             "generation": generation, "ggd": completion, "ggd_merge": merged}
 
 

@@ -168,9 +168,11 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
                         + [_nanmean([i.noisy_coverage[n] for i in noisy if i.size_bin == b]) for b, *_ in SIZE_BINS])
         floors = [i for i in noisy if i.placement_floor is not None]
         if floors:
-            clean, shaken = (_nanmean([i.placement_floor[j] for i in floors]) for j in (0, 1))
+            pairs = [i.placement_floor for i in floors if i.placement_floor is not None]
+            clean, shaken = (_nanmean([p[j] for p in pairs]) for j in (0, 1))
             rows.append([PLACEMENT_FLOOR_TITLE, clean, shaken, "n/a (a floor)"]
-                        + [_nanmean([i.placement_floor[1] for i in floors if i.size_bin == b]) for b, *_ in SIZE_BINS])
+                        + [_nanmean([i.placement_floor[1] for i in floors if i.size_bin == b and i.placement_floor])
+                           for b, *_ in SIZE_BINS])
         parts.append(f"### Box noise: coverage error x1e3 (random reference) with detector-like box errors\n\n"
                      f"{len(noisy)} observations. Each box perturbed ({result.noise.describe()}, drawn per (track, "
                      "frame, sensor)); the points are cropped, ground-cut and normalised with the noisy box, every "

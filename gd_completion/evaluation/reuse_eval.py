@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -58,7 +59,7 @@ class ReuseResult:
     seconds: dict[str, float]
 
 
-def play_sequence(root: str | Path, completer: object, sensor: int = 0, frames: int | None = None) -> ReuseRun:
+def play_sequence(root: str | Path, completer: Any, sensor: int = 0, frames: int | None = None) -> ReuseRun:
     """Feed every frame (sensor frame, time order, stamped) to `completer.complete_frame`; keep each vehicle's
     published points (measured and completion, as the node publishes them) normalised by its box; the first
     `frames` frames only when given."""
@@ -78,7 +79,7 @@ def play_sequence(root: str | Path, completer: object, sensor: int = 0, frames: 
     return run
 
 
-def evaluate_reuse(root: str | Path, completer_factory: Callable[[str, bool], object], *,
+def evaluate_reuse(root: str | Path, completer_factory: Callable[[str, bool], Any], *,
                    preprocessing: Preprocessing | None = None, reference_points: int = REFERENCE_POINTS,
                    frames: int | None = None) -> ReuseResult:
     """The runs of `RUNS` (`completer_factory(track_ids, reuse)` gives a fresh completer for each), scored on the
@@ -105,7 +106,8 @@ def evaluate_reuse(root: str | Path, completer_factory: Callable[[str, bool], ob
     covered = sorted(k for k in usable if references.get(k[0]) is not None)
     rows = []
     for run in runs:
-        cover = [_nearest_sq(references[i], run.outputs[(i, f)]) for i, f in covered]
+        cover = [_nearest_sq(reference, run.outputs[(i, f)]) for i, f in covered
+                 if (reference := references[i]) is not None]
         steady: dict[bool, list[float]] = {True: [], False: []}
         for i, f in sorted(usable):
             if (i, f + 1) in usable:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 
@@ -188,7 +189,7 @@ class ScanAssembler:
         self.calibration = calibration
         self.model = model
         self.scan_phase = float(scan_phase) % 360.0
-        self.options = dict(min_range=min_range, max_range=max_range, fov=fov, dedupe_dual=dedupe_dual)
+        self.options: dict[str, Any] = dict(min_range=min_range, max_range=max_range, fov=fov, dedupe_dual=dedupe_dual)
         self.source = source
         self.packets_seen = 0
         self.late_points_dropped = 0

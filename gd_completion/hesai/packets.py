@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -91,7 +92,7 @@ _P64_FIRING_NS = np.array([
     -11444, -6228, -15356, -10140, -4924, -3620, -14052, -8836, -12748,
 ], dtype=np.int64)
 
-_P40 = dict(
+_P40: dict[str, Any] = dict(
     dtypes={1262: _pandar40_dtype()}, n_blocks=10, n_channels=40, sob=0xEEFF, year_offset=2000,
     firing_offset_ns=_P40_FIRING_NS, block_base_ns=-28580, block_step_ns=55560,
 )

@@ -49,11 +49,11 @@ def read_pcd(path: str | Path) -> np.ndarray:
             raise DataFormatError(f"{path}: PCD binary data shorter than {n_points} points")
         return np.frombuffer(raw, dtype=dtype, count=n_points, offset=offset).copy()
     if mode == "ascii":
-        values = np.array(raw[offset:].decode("ascii").split(), dtype=np.float64)
+        numbers = np.array(raw[offset:].decode("ascii").split(), dtype=np.float64)
         width = sum(counts)
-        if values.size < n_points * width:
+        if numbers.size < n_points * width:
             raise DataFormatError(f"{path}: PCD ascii data shorter than {n_points} points")
-        table = values[: n_points * width].reshape(n_points, width)
+        table = numbers[: n_points * width].reshape(n_points, width)
         out = np.empty(n_points, dtype=dtype)
         column = 0
         for name, count in zip(names, counts, strict=True):

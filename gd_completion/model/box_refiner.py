@@ -80,6 +80,9 @@ def frame_targets(box_noise: np.ndarray, yaw: np.ndarray, size: np.ndarray, true
 class BoxRefiner(nn.Module):
     """PointNet (shared MLP, max pool, MLP) from a vehicle's points and its box shape to its `BoxFrame`."""
 
+    units: Tensor    # buffers (register_buffer): FRAME_UNITS, FRAME_LIMITS
+    limits: Tensor
+
     def __init__(self, widths: tuple[int, ...], hidden: tuple[int, ...]) -> None:
         super().__init__()
         layers: list[nn.Module] = []
@@ -99,7 +102,7 @@ class BoxRefiner(nn.Module):
         self.head = nn.Sequential(*head)
         self.register_buffer("units", torch.tensor(FRAME_UNITS))
         self.register_buffer("limits", torch.tensor(FRAME_LIMITS), persistent=False)
-        self._pairs = tuple(zip(self.points[0::3], self.points[1::3]))   # (Conv1d, BatchNorm1d) per point layer
+        self._pairs = tuple(zip(self.points[0::3], self.points[1::3]))  # type: ignore[call-overload]  # Sequential slices   # (Conv1d, BatchNorm1d) per point layer
         self._fold = FoldCache()   # ((bias, weight^T) per point layer)
 
     def clear_fold(self) -> None:

@@ -10,8 +10,11 @@ from torch import Tensor, nn
 
 def fold_bn(weight: Tensor, bias: Tensor | None, bn: nn.BatchNorm1d) -> tuple[Tensor, Tensor]:
     """(bias, weight^T) of the affine map x -> bn(x W^T + bias) in eval mode; `weight` (out, in)."""
-    scale = bn.weight * torch.rsqrt(bn.running_var + bn.eps)
-    shift = bn.bias - bn.running_mean * scale
+    mean, var = bn.running_mean, bn.running_var
+    if mean is None or var is None:
+        raise ValueError("fold_bn needs a BatchNorm1d with running statistics (track_running_stats)")
+    scale = bn.weight * torch.rsqrt(var + bn.eps)
+    shift = bn.bias - mean * scale
     if bias is not None:
         shift = shift + bias * scale
     return shift, (weight * scale[:, None]).t()
@@ -26,7 +29,7 @@ class FoldCache:
     read a consistent one."""
 
     def __init__(self) -> None:
-        self._entry: tuple[tuple, tuple[Tensor, ...], Any] | None = None   # (key, sources, value)
+        self._entry: tuple[tuple, tuple[Tensor | None, ...], Any] | None = None   # (key, sources, value)
 
     def clear(self) -> None:
         """Drop the cached value."""
@@ -38,13 +41,14 @@ class FoldCache:
         entry = self._entry
         return None if entry is None else entry[2]
 
-    def get(self, sources: Sequence[Tensor], compute: Callable[[], Any]) -> Any:
+    def get(self, sources: Sequence[Tensor | None], compute: Callable[[], Any]) -> Any:
         """The cached value if `sources` are unchanged since it was computed, else `compute()` (as plain tensors:
         without autograd, outside inference mode), cached."""
-        key = tuple((t.data_ptr(), t._version, t.dtype, t.device) for t in sources)
+        key = tuple((t.data_ptr(), t._version, t.dtype, t.device) if t is not None else None for t in sources)
         entry = self._entry
         if entry is None or entry[0] != key:
             with torch.inference_mode(False), torch.no_grad():
-                entry = (key, tuple(t.detach() for t in sources), compute())   # their storage, even if swapped
+                held = tuple(t.detach() if t is not None else None for t in sources)   # their storage, even if swapped
+                entry = (key, held, compute())
             self._entry = entry
         return entry[2]

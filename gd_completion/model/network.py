@@ -99,7 +99,8 @@ class MultiResolutionEncoder(nn.Module):
         layers.append(nn.Linear(cin, cfg.code_dim))
         self.head = nn.Sequential(*layers)
         # box shape enters the first layer of the head (zero at init: a warm start keeps its function)
-        self.box_in = nn.Linear(2, layers[0].out_features, bias=False) if cfg.box_conditioning else None
+        self.box_in = nn.Linear(2, cfg.code_hidden[0] if cfg.code_hidden else cfg.code_dim, bias=False) \
+            if cfg.box_conditioning else None
         if self.box_in is not None:
             nn.init.zeros_(self.box_in.weight)
 
@@ -148,7 +149,7 @@ class TreeDecoder(nn.Module):
         nodes = self.root(code).view(b, self.arity[0], self.node_dim)
         for node_in, code_in, rest in zip(self.node_in, self.code_in, self.rest):
             h = node_in(nodes) + code_in(code).unsqueeze(1)
-            nodes = rest(h).view(b, -1, self.node_dim if rest[-1].__class__ is nn.Tanh else 3)
+            nodes = rest(h).view(b, -1, self.node_dim if rest[-1].__class__ is nn.Tanh else 3)  # type: ignore[index]
         return nodes
 
 
@@ -168,6 +169,8 @@ class LocalFeatures(nn.Module):
     The ball of radius s*r takes its M points from the FPS prefix of N/s^2 input points (same density
     of M points per ball area at every scale; one kNN of M per scale instead of M*max(s) on all N).
     """
+
+    inv_radius: Tensor   # buffer: 1 / (radius x scale) per ball
 
     def __init__(self, cfg: GGDConfig) -> None:
         super().__init__()
@@ -252,8 +255,8 @@ class GResNet(nn.Module):
     def forward(self, x: Tensor, code: Tensor, knn: Tensor) -> Tensor:
         nbr = flat_index(knn, knn.shape[1])
         h = torch.relu(self.inp(x, nbr, self.k) + self.code_lin(code).unsqueeze(1))
-        for g1, g2 in self.blocks:
-            h = (h + torch.relu(g2(torch.relu(g1(h, nbr, self.k)), nbr, self.k))) * 0.5
+        for g1, g2 in self.blocks:  # type: ignore[misc]  # a ModuleList of (GraphConv, GraphConv) ModuleLists
+            h = (h + torch.relu(g2(torch.relu(g1(h, nbr, self.k)), nbr, self.k))) * 0.5  # type: ignore[has-type]
         return self.out(h, nbr, self.k)
 
 

@@ -54,10 +54,11 @@ def _as_numpy(t: Tensor) -> np.ndarray:
 
 def neighbour_distance(a: Tensor, b: Tensor) -> Tensor:
     """Squared distances (B, Na, Nb) computed as ((dx*dx + dy*dy) + dz*dz): the neighbour searches' arithmetic."""
-    d = None
-    for c in range(3):
+    first = a[..., 0].unsqueeze(-1) - b[..., 0].unsqueeze(-2)
+    d = first * first
+    for c in (1, 2):
         diff = a[..., c].unsqueeze(-1) - b[..., c].unsqueeze(-2)
-        d = diff * diff if d is None else d.add_(diff * diff)
+        d = d.add_(diff * diff)
     return d
 
 

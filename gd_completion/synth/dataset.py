@@ -110,7 +110,8 @@ class SampleOptions:
         unknown = set(data) - known
         if unknown:
             raise ValueError(f"SampleOptions: unknown fields {sorted(unknown)}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+        values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        return cls(**values)
 
 
 #: Generator version 1's sampling (the defaults).
@@ -441,7 +442,7 @@ def save_dataset(path: str | Path, data: dict[str, Any]) -> Path:
     meta["stored_float16"] = [k for k in _POINT_KEYS if k in arrays]
     arrays["metadata_json"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
+        np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]  # numpy's stub types **kwds as allow_pickle
     return path
 
 
