@@ -118,3 +118,42 @@ def test_box_sizes_reach_the_network(completer: VehicleCompleter, scene) -> None
         completer.complete_normalized([partial, partial], [(4.5, 1.8, 1.5)])
     with pytest.raises(ValueError, match="box-conditioned"):
         completer.complete_normalized([partial])
+
+
+@pytest.mark.parametrize(("include", "merge", "fusion", "fused_points"), [
+    (True, True, False, False), (True, False, False, False), (False, True, False, False), (False, False, False, False),
+    (True, True, True, False), (True, True, True, True), (False, True, True, False), (False, True, True, True),
+    (True, False, True, False), (True, False, True, True), (False, False, True, False), (False, False, True, True),
+])
+def test_output_flags_over_every_combination(completer: VehicleCompleter, include, merge, fusion, fused_points) -> None:
+    """One table over include_input_points x measured_merge x track fusion x publish_fused_points: a car seen from its
+    left side, then from its front; the second frame's output holds the right points with the right flags."""
+    from gd_completion.fusion import TrackFusion
+
+    rng = np.random.default_rng(4)
+    box = Box3D((10.0, 3.0, -0.9), (4.5, 1.8, 1.5), 0.3, "car", 7)
+    both = box_surface_points(box, 1600, rng)
+    frames = [both[:800], both[800:]]            # the left side, then the front
+    engine = VehicleCompleter(completer.model, preprocessing=Preprocessing(ground_clearance=0.0),
+                              include_input_points=include, measured_merge=merge,
+                              fusion=TrackFusion() if fusion else None, publish_fused_points=fused_points)
+    for k, points in enumerate(frames):
+        result = engine.complete_frame(points, [box], stamp_ns=(k + 1) * 100_000_000)
+    n_out = engine.num_output
+    measured = result.points[result.generated == 0]
+    completion = result.points[result.generated == 1]
+    expected = np.concatenate(frames) if fusion and fused_points else frames[1]   # what counts as measured
+    if include:
+        assert len(measured) >= len(frames[1]) if fusion and fused_points else len(measured) == len(frames[1])
+        assert n_out - engine.num_input <= len(completion) <= n_out if merge else len(completion) == n_out
+    else:
+        assert len(result.points) == n_out
+        assert (len(measured) > 0) == merge       # without the merge nothing of the output is a measurement
+    # every point flagged measured is a measured point (of this frame, or of the track with fused points)
+    gap = np.sqrt(((measured[:, None, :] - expected[None]) ** 2).sum(-1)).min(1) if len(measured) else np.zeros(0)
+    assert (gap < 0.05).all()   # the fused points pass through the track's frame (voxels, mean placement): cm
+    if fusion and not fused_points and merge and not include:
+        # the completion's points from the earlier frame (the left side) are not this frame's: generated=1
+        left = normalize(frames[0], box)
+        near_left = np.sqrt(((normalize(completion, box)[:, None] - left[None]) ** 2).sum(-1)).min(1) < 1e-3
+        assert near_left.any()
