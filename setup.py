@@ -1,13 +1,17 @@
 """ament_python package set-up: `ros2 run gd_completion completer` and the `gd-completion` tool."""
+import re
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
 PACKAGE = "gd_completion"
+# The one version string is package.xml's (ROS reads it there); the Python metadata and `__version__` follow it.
+VERSION = re.search(r"<version>([^<]+)</version>", (Path(__file__).parent / "package.xml").read_text()).group(1)
 
 setup(
     name=PACKAGE,
-    version="0.1.0",
+    version=VERSION,
     packages=find_packages(exclude=["test", "test.*"]),
     package_data={PACKAGE: ["weights/*.pt", "msg/*/*.msg", "weights/*.md"]},
     data_files=[

@@ -1,6 +1,11 @@
 """Graph-Guided Deformation completion of lidar vehicle scans for ROS 2."""
 
-__version__ = "0.1.0"
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("gd_completion")   # package.xml's, through setup.py
+except PackageNotFoundError:   # run from a source tree that was never installed
+    __version__ = "unknown"
 
 __all__ = ["complete_cloud"]
 
