@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from gd_completion.association import BoxAssociator, track_identity
+from gd_completion.association import TRACK_ID_MODES, BoxAssociator, track_identity
 from gd_completion.errors import DeviceError
 from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask, normalize
@@ -25,7 +25,7 @@ from gd_completion.merge import merge_with_fed, merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
-from gd_completion.reuse import CachedCompletion, CompletionCache, Decision, ReuseSettings
+from gd_completion.reuse import DUE_UNCACHED, CachedCompletion, CompletionCache, Decision, ReuseSettings
 from gd_completion.sampling import resample_indices
 
 __all__ = ["COMPLETION_DTYPE", "DEFAULT_LABELS", "LABEL_IDS", "FrameCompletion", "FrameStats", "VehicleCompleter",
@@ -135,7 +135,8 @@ class VehicleCompleter:
         self.fusion = fusion
         self.publish_fused_points = bool(publish_fused_points)
         self.measured_merge = bool(measured_merge)
-        track_identity(track_ids, [], None, None)   # ValueError for an unknown mode
+        if track_ids not in TRACK_ID_MODES:
+            raise ValueError(f"track_ids={track_ids!r} must be one of {TRACK_ID_MODES}")
         self.track_ids = track_ids
         self.associator = BoxAssociator()
         self.cache = CompletionCache(reuse) if reuse is not None else None
@@ -312,9 +313,10 @@ class VehicleCompleter:
 
     def _with_track_ids(self, boxes: Sequence[Box3D], stamp_ns: int | None) -> list[Box3D]:
         """`boxes` with the track ids of `track_ids` given to the boxes that will be completed (label and geometry
-        usable); the others as they are. The track ids key fusion and reuse; the output keeps the given ids."""
+        usable); the others as they are. The track ids key fusion and reuse (both need stamps); the output keeps the
+        given ids."""
         boxes = list(boxes)
-        if self.track_ids == "message" or (self.track_ids == "associate" and stamp_ns is None):
+        if self.track_ids == "message" or stamp_ns is None:
             return boxes
         usable = [i for i, box in enumerate(boxes) if box.label in self.labels and box_problem(box) is None]
         for i, box in zip(usable, track_identity(self.track_ids, [boxes[i] for i in usable], stamp_ns,
@@ -366,16 +368,15 @@ class VehicleCompleter:
     def _decisions(self, vehicles: Sequence[CroppedVehicle], stamp_ns: int,
                    cache: CompletionCache | None) -> list[Decision]:
         """Per vehicle: is its network completion due (always without a cache, a track id or for a repeated id)."""
-        always = Decision(True, math.inf, "none", None)
         if cache is None:
-            return [always] * len(vehicles)
+            return [DUE_UNCACHED] * len(vehicles)
         cache.expire(stamp_ns)
         seen: set[int] = set()
         out = []
         for vehicle in vehicles:
             key = vehicle.box.instance_id
             if key < 0 or key in seen:
-                out.append(always)
+                out.append(DUE_UNCACHED)
                 continue
             seen.add(key)
             current = vehicle.normalized if vehicle.current_rows is None \

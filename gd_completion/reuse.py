@@ -32,7 +32,7 @@ from gd_completion.sampling import strided_indices, voxel_first_indices
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
-__all__ = ["CachedCompletion", "CompletionCache", "Decision", "ReuseSettings"]
+__all__ = ["DUE_UNCACHED", "CachedCompletion", "CompletionCache", "Decision", "ReuseSettings"]
 
 MAX_QUERY_POINTS = 128   # this frame's points tested for new information at most (evenly strided)
 
@@ -82,6 +82,10 @@ class Decision:
     cached: CachedCompletion | None
 
 
+# The decision for a vehicle with nothing cached (never completed, no track id, a repeated id): its network run is due.
+DUE_UNCACHED = Decision(True, math.inf, "none", None)
+
+
 def _metres(normalized: np.ndarray, length: float) -> np.ndarray:
     return np.asarray(normalized, np.float32).reshape(-1, 3) * np.float32(length)
 
@@ -108,7 +112,7 @@ class CompletionCache:
                 entry.last_seen_ns = int(stamp_ns)
                 self._entries.move_to_end(key)
         if entry is None:
-            return Decision(True, math.inf, "none", None)
+            return DUE_UNCACHED
         ratios = {"age": (stamp_ns - entry.stamp_ns) * 1e-9 / s.max_age_s,
                   "size": max(abs(n - o) / o for o, n in zip(entry.size, size)) / s.size_change}
         points = _metres(current, size[0])

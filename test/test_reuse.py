@@ -58,6 +58,17 @@ def test_association_restarts_when_time_goes_back_and_modes() -> None:
         track_identity("tracker", [box], 0, associator)
 
 
+def test_unknown_track_id_modes_are_refused(model) -> None:
+    from gd_completion.ros.params import PARAMETERS, ParameterError, validate
+
+    with pytest.raises(ValueError, match="track_ids='tracker' must be one of"):
+        VehicleCompleter(model, track_ids="tracker")
+    values = {name: default for name, (default, _, _) in PARAMETERS.items()}
+    with pytest.raises(ParameterError, match="parameter track_ids='uuid' must be one of"):
+        validate({**values, "track_ids": "uuid"})
+    assert validate(values).reuse is not None and validate({**values, "reuse": False}).reuse is None
+
+
 def test_association_agrees_with_pandaset_ids_hidden(shared_data) -> None:
     from gd_completion.evaluation.association_eval import association_agreement
 
