@@ -296,8 +296,10 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     assert (out / "heldout_meshes.png").stat().st_size > 10_000
     assert (out / "synthetic_vehicles.png").stat().st_size > 10_000
     reuse = {cells(line)[0]: cells(line) for line in text.split("## PandaSet 002: completion reuse")[1].splitlines()
-             if line.startswith(("| fresh", "| reuse"))}
-    assert sorted(reuse) == ["fresh", "reuse, association", "reuse, cuboid ids"]
+             if line.startswith(("| fresh", "| reuse", "| mirror"))}
+    assert sorted(reuse) == ["fresh", "mirror + template (no network)", "reuse, association", "reuse, cuboid ids"]
+    prior = reuse["mirror + template (no network)"]
+    assert int(prior[1]) == 0 and float(prior[4]) > 0   # no network run; a coverage error of its own
     assert int(reuse["reuse, association"][1]) < int(reuse["fresh"][1]) and int(reuse["fresh"][2]) == 0
     assert "true frame-to-frame links kept" in text
 

@@ -10,13 +10,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gd_completion.datasets.pandaset import PandaSetSequence
 from gd_completion.evaluation.association_eval import AssociationResult, association_agreement
-from gd_completion.evaluation.fusion_eval import fuse_drive
+from gd_completion.evaluation.fusion_eval import FusedTrack, fuse_drive
 from gd_completion.evaluation.metrics import CD_SCALE, COVERAGE_SCALE
+from gd_completion.evaluation.nearest import nearest_sq
 from gd_completion.evaluation.pandaset_eval import MIN_INPUT_POINTS, REFERENCE_POINTS, multi_frame_reference
+from gd_completion.evaluation.priors import mirror_template
 from gd_completion.geometry import normalize
 from gd_completion.preprocess import Preprocessing
 
@@ -104,26 +105,40 @@ def evaluate_reuse(root: str | Path, completer_factory: Callable[[str, bool], An
     usable = {(i, f) for i, f in common
               if f in tracks[i].frames and len(tracks[i].single[tracks[i].frames.index(f)]) >= MIN_INPUT_POINTS}
     covered = sorted(k for k in usable if references.get(k[0]) is not None)
+    runs.append(prior_run(tracks, usable))
     rows = []
     for run in runs:
-        cover = [_nearest_sq(reference, run.outputs[(i, f)]) for i, f in covered
+        cover = [_mean_nearest_sq(reference, run.outputs[(i, f)]) for i, f in covered
                  if (reference := references[i]) is not None]
         steady: dict[bool, list[float]] = {True: [], False: []}
         for i, f in sorted(usable):
             if (i, f + 1) in usable:
                 a, b = run.outputs[(i, f)], run.outputs[(i, f + 1)]
-                steady[tracks[i].stationary].append(_nearest_sq(a, b) + _nearest_sq(b, a))
+                steady[tracks[i].stationary].append(_mean_nearest_sq(a, b) + _mean_nearest_sq(b, a))
         rows.append(ReuseRow(run.name, run.runs, run.reused, run.seconds, _mean(cover) * COVERAGE_SCALE,
                              _mean(steady[True]) * CD_SCALE, _mean(steady[False]) * CD_SCALE))
     seconds["metrics"] = time.perf_counter() - t1
     return ReuseResult(rows, len(usable), len(covered), association_agreement(root), seconds)
 
 
-def _nearest_sq(source: np.ndarray, target: np.ndarray) -> float:
-    """Mean squared distance from each `source` point to its nearest `target` point: `metrics.coverage_error`
-    (reference -> output) and one direction of `metrics.chamfer`, by a KD-tree (clouds of different sizes)."""
-    distance, _ = cKDTree(np.asarray(target, np.float64)).query(np.asarray(source, np.float64), k=1)
-    return float(np.mean(distance ** 2))
+def prior_run(tracks: dict[int, FusedTrack], keys: set[tuple[int, int]]) -> ReuseRun:
+    """The no-learning baseline published as the node publishes a completion: each vehicle-frame's measured points
+    beside "mirror + template" (`priors.mirror_template`, 2,048 points) of them, for the (instance id, frame) `keys`."""
+    run = ReuseRun("mirror + template (no network)")
+    start = time.perf_counter()
+    for i, f in sorted(keys):
+        track = tracks[i]
+        position = track.frames.index(f)
+        partial = np.asarray(track.single[position], np.float32)
+        run.outputs[(i, f)] = np.concatenate([partial, mirror_template(partial, np.asarray(track.sizes[position]))])
+    run.seconds = time.perf_counter() - start
+    return run
+
+
+def _mean_nearest_sq(source: np.ndarray, target: np.ndarray) -> float:
+    """Mean squared distance from each `source` point to its nearest `target` point (`evaluation.nearest`):
+    `metrics.coverage_error` (reference -> output) and one direction of `metrics.chamfer`, for clouds of any size."""
+    return float(np.mean(nearest_sq(source, target)))
 
 
 def _mean(values: list[float]) -> float:
@@ -150,9 +165,10 @@ def reuse_section(result: ReuseResult) -> str:
         "(fresh) against reuse (`gd_completion.reuse`, default settings, no frame budget) keyed by the cuboid ids and "
         "by the built-in association with the ids hidden. Scored on the published points of each vehicle (its measured "
         f"points and its completion, normalised by its box) over the {result.vehicle_frames} vehicle-frames every run "
-        f"published with >= {MIN_INPUT_POINTS} input points: coverage error against the multi-frame reference "
-        f"({result.coverage_items} stationary vehicle-frames), consistency = Chamfer x1e4 between a vehicle's "
-        "published points in consecutive frames (lower is better for both).\n\n" + table + "\n\n"
+        f"published with >= {MIN_INPUT_POINTS} input points, beside the no-learning baseline published the same way "
+        "(measured points and mirror + template of them, 2,048 points): coverage error against the multi-frame "
+        f"reference ({result.coverage_items} stationary vehicle-frames), consistency = Chamfer x1e4 between a "
+        "vehicle's published points in consecutive frames (lower is better for both).\n\n" + table + "\n\n"
         f"Association with the cuboid ids hidden ({a.frames} frames, {a.boxes} car/van/truck boxes, the annotated "
         f"boxes, without detector noise): {a.kept_links} of {a.true_links} true frame-to-frame links kept "
         f"({100 * a.kept:.1f} %), {a.wrong_links} of {a.links} links joining two different vehicles "
