@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from gd_completion.association import TRACK_ID_MODES, BoxAssociator, track_identity
+from gd_completion.association import TRACK_ID_MODES, AssociationSettings, BoxAssociator, track_identity
 from gd_completion.errors import DeviceError
 from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask, normalize
@@ -124,6 +124,7 @@ class VehicleCompleter:
         publish_fused_points: bool = False,
         measured_merge: bool = True,
         track_ids: str = "message",
+        association: AssociationSettings | None = None,
         reuse: ReuseSettings | None = None,
     ) -> None:
         self.model = model.to(device).eval()
@@ -138,7 +139,7 @@ class VehicleCompleter:
         if track_ids not in TRACK_ID_MODES:
             raise ValueError(f"track_ids={track_ids!r} must be one of {TRACK_ID_MODES}")
         self.track_ids = track_ids
-        self.associator = BoxAssociator()
+        self.associator = BoxAssociator(association)
         self.cache = CompletionCache(reuse) if reuse is not None else None
         self._vehicle_seconds = 0.0   # recent mean wall time of one vehicle's network completion (budget planning)
         self.num_input = model.config.num_input

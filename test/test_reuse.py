@@ -207,3 +207,18 @@ def test_without_budget_every_due_vehicle_runs(model) -> None:
     second = completer.complete_frame(points, boxes, stamp_ns=SECOND + SECOND // 10)
     assert first.stats.completions_run == 6 and second.stats.completions_reused == 6
     assert len(first.points) == len(second.points)
+
+
+def test_bad_boxes_are_skipped_before_the_association(model) -> None:
+    """NaN and zero-size boxes beside a real car, with the association and reuse on: counted skips, the car still
+    completed under its own id, and the association is never fed the bad boxes (no NaN in its cost matrix)."""
+    rng = np.random.default_rng(3)
+    car = Box3D((10.0, 3.0, -0.9), (4.5, 1.8, 1.5), 0.3, "car", 7)
+    bad = [Box3D((math.nan, 0.0, 0.0), (4.5, 1.8, 1.5), 0.0, "car", 8),
+           Box3D((5.0, 5.0, 0.0), (0.0, 1.8, 1.5), 0.0, "car", 9)]
+    completer = _completer(model, reuse=ReuseSettings(), track_ids="associate")
+    for k in range(3):
+        result = completer.complete_frame(box_surface_points(car, 800, rng), [*bad, car], stamp_ns=k * SECOND // 10)
+        assert result.stats.skipped["degenerate_box"] == 2
+        assert set(np.unique(result.instance_id)) == {7}
+    assert completer.associator.counters["association_started"] == 1

@@ -25,7 +25,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64, Header
 from visualization_msgs.msg import MarkerArray
 
-from gd_completion.association import AssociationSettings, BoxAssociator
+from gd_completion.association import AssociationSettings
 from gd_completion.box_messages import BoxSet, box_count, detections_to_boxes, markers_to_boxes
 from gd_completion.errors import GDCompletionError, PointCloud2Error
 from gd_completion.fusion import FusionLimits, TrackFusion
@@ -40,11 +40,9 @@ from gd_completion.ros.params import (
     check_model_sizes,
     declare_parameters,
     params_file_problems,
-    print_help,
     read_parameters,
     unknown_parameters,
     validate,
-    wants_help,
 )
 from gd_completion.stamp_sync import LatestSlot, Pair, StampSync, stamp_to_ns
 
@@ -101,8 +99,8 @@ class CompleterNode(Node):
         p = self.params
         self.completer = completer or VehicleCompleter.from_checkpoint(
             p.model_path or None, device=p.device, num_threads=p.num_threads or (1 if p.reuse else None),
-            labels=p.labels, track_ids=p.track_ids, reuse=p.reuse)
-        self.completer.associator = BoxAssociator(AssociationSettings(max_distance=p.association_max_distance))
+            labels=p.labels, track_ids=p.track_ids, reuse=p.reuse,
+            association=AssociationSettings(max_distance=p.association_max_distance))
         self._checkpoint_preprocessing = self.completer.preprocessing
         if p.track_fusion:
             self.completer.fusion = TrackFusion(FusionLimits(max_tracks=p.fusion_max_tracks,
@@ -360,11 +358,8 @@ def main(args: list[str] | None = None, start_up_handler: Callable[[int, Any], N
     """`ros2 run gd_completion completer`: spin until SIGINT/SIGTERM, then exit 0 within 2 s (a second signal,
     as `ros2 launch` sends, changes nothing); exit 2 with one line on a configuration error. A signal while the
     node is being constructed (model loading, warm-up) goes to `start_up_handler` (`completer_main`: exit 0 at
-    once); without one it is acted on once the node is constructed."""
+    once); without one it is acted on once the node is constructed. `--help` is `completer_main`'s."""
     argv = list(sys.argv[1:] if args is None else args)
-    if wants_help(argv):
-        print_help()
-        return 0
     stop = threading.Event()
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -399,5 +394,7 @@ def main(args: list[str] | None = None, start_up_handler: Callable[[int, Any], N
     return code
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":   # the executable's entry, start-up signals and --help included
+    from gd_completion.ros.completer_main import main as executable_main
+
+    sys.exit(executable_main())
