@@ -39,7 +39,7 @@ def ros_env(tmp: Path) -> dict[str, str]:
 
 
 class NodeProcess:
-    """`python -m gd_completion.ros.completer_node` with stdout/stderr in files."""
+    """`python -m gd_completion.ros.completer_main` (the `completer` executable) with stdout/stderr in files."""
 
     def __init__(self, tmp: Path, params: dict[str, str], env: dict[str, str], name: str) -> None:
         self.stderr_path = tmp / f"{name}.stderr"

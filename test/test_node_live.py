@@ -512,7 +512,7 @@ def test_double_sigint_mid_frame_exits_cleanly(ros_context, frames, tmp_path):
 ], ids=["wrong type", "out of range", "missing params file", "no such device", "model size"])
 def test_configuration_errors_are_one_line_exit_2(ros_context, tmp_path, args, message):
     env, _ = ros_context
-    proc = subprocess.run([sys.executable, "-m", "gd_completion.ros.completer_node", "--ros-args", *args],
+    proc = subprocess.run([sys.executable, "-m", "gd_completion.ros.completer_main", "--ros-args", *args],
                           cwd=REPO, env={**os.environ, **env}, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert message in proc.stderr and "Traceback" not in proc.stderr
@@ -521,7 +521,7 @@ def test_configuration_errors_are_one_line_exit_2(ros_context, tmp_path, args, m
 
 def test_help_and_unknown_parameters(ros_context, tmp_path):
     env, _ = ros_context
-    help_run = subprocess.run([sys.executable, "-m", "gd_completion.ros.completer_node", "--help"], cwd=REPO,
+    help_run = subprocess.run([sys.executable, "-m", "gd_completion.ros.completer_main", "--help"], cwd=REPO,
                               env={**os.environ, **env}, capture_output=True, text=True, timeout=60)
     assert help_run.returncode == 0 and "min_points" in help_run.stdout and "live" in help_run.stdout
     node = NodeProcess(tmp_path, {**BASE_PARAMS, "min_point": "5"}, env, "typo")

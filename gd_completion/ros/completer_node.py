@@ -393,8 +393,3 @@ def main(args: list[str] | None = None, start_up_handler: Callable[[int, Any], N
         rclpy.try_shutdown()
     return code
 
-
-if __name__ == "__main__":   # the executable's entry, start-up signals and --help included
-    from gd_completion.ros.completer_main import main as executable_main
-
-    sys.exit(executable_main())
