@@ -40,8 +40,8 @@ def load_sequence(bag_dir: Path) -> list[tuple[object, object]]:
     from sensor_msgs.msg import PointCloud2
     from visualization_msgs.msg import MarkerArray
 
+    from gd_completion.bags.dataset_conversion import convert_pandaset
     from gd_completion.bags.reader import iter_raw, open_bag
-    from gd_completion.tools.convert import convert_pandaset
 
     convert_pandaset(SHARED / "pandaset-002", bag_dir, sensors=(0,), quiet=True)
     clouds: list[object] = []

@@ -18,8 +18,9 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from gd_completion.tools.complete_many import complete_many, plan_jobs  # noqa: E402
-from gd_completion.tools.convert import convert_pandaset  # noqa: E402
+from gd_completion.bags.batch import complete_many, plan_jobs  # noqa: E402
+from gd_completion.bags.dataset_conversion import convert_pandaset  # noqa: E402
+from gd_completion.settings import CompletionSettings  # noqa: E402
 
 SHARED = Path(os.environ.get("GD_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
@@ -54,8 +55,9 @@ def main() -> int:
             out = root / f"{engine}{workers}"
             jobs = plan_jobs([str(root / "bags" / "*")], out)
             start = time.perf_counter()
-            outcomes = complete_many(jobs, engine=engine, workers=workers, model=args.model, progress=False,
-                                     completer_options={"num_threads": 1, "min_points": args.min_points})
+            outcomes = complete_many(jobs, CompletionSettings.offline(
+                model_path=args.model or "", num_threads=1, min_points=args.min_points or 0), engine=engine,
+                workers=workers, progress=False)
             times[engine, workers] = seconds = time.perf_counter() - start
             assert all(o.status == "done" for o in outcomes), [o.detail for o in outcomes]
             files = _files(out)

@@ -15,8 +15,9 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from gd_completion.bags.completion import complete_bag  # noqa: E402
+from gd_completion.bags.dataset_conversion import convert_kitti, convert_pandaset  # noqa: E402
 from gd_completion.pipeline import default_threads  # noqa: E402
-from gd_completion.tools.convert import convert_kitti, convert_pandaset  # noqa: E402
+from gd_completion.settings import CompletionSettings  # noqa: E402
 
 SHARED = Path(os.environ.get("GD_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
@@ -30,10 +31,10 @@ def _timed(fn):
 class _CropOnly:
     """The pipeline minus the forward pass: crops and returns each vehicle's measured points."""
 
-    def __init__(self, model: str | None, **options) -> None:
+    def __init__(self, settings: CompletionSettings) -> None:
         from gd_completion.pipeline import VehicleCompleter
 
-        self.inner = VehicleCompleter.from_checkpoint(model, **options)
+        self.inner = VehicleCompleter.from_settings(settings)
 
     def __getattr__(self, name: str):
         """The inner completer's settings (labels, preprocessing, ...), e.g. for the bag's provenance."""
@@ -80,12 +81,11 @@ def main() -> int:
               f"(both sensors, ~170k points per frame)")
         convert_pandaset(SHARED / "pandaset-002", tmp / "panda_small", quiet=True, limit=args.complete_frames,
                          sensors=(0,))
-        options = {"num_threads": args.threads} if args.threads else {}
-        if args.min_points is not None:
-            options["min_points"] = args.min_points
+        settings = CompletionSettings.offline(model_path=args.model or "", num_threads=args.threads or 0,
+                                              min_points=args.min_points or 0)
         for workers in sorted({1, args.workers}):
-            summary = complete_bag(tmp / "panda_small", tmp / f"panda_done_{workers}", model=args.model,
-                                   progress=False, workers=workers, **options)
+            summary = complete_bag(tmp / "panda_small", tmp / f"panda_done_{workers}", settings, progress=False,
+                                   workers=workers)
             rate = summary.frames / summary.seconds
             per_frame = summary.vehicles_completed / max(summary.frames, 1)
             threads = args.threads or (1 if workers > 1 else default_threads())
@@ -94,7 +94,7 @@ def main() -> int:
                   f"each; target >= 1 frame/s {'met' if rate >= 1 else 'NOT met'})")
             print(f"  {summary.text()}")
         summary = complete_bag(tmp / "panda_small", tmp / "panda_plumbing", progress=False,
-                               completer=_CropOnly(model=args.model, **options))
+                               completer=_CropOnly(settings))
         print(f"complete pandaset without the network (decode, crop, encode, copy): "
               f"{summary.frames / summary.seconds:.1f} frames/s")
     return 0

@@ -25,6 +25,7 @@ class BoxSet:
     boxes: tuple[Box3D, ...]
     frame_ids: tuple[str, ...]
     decode_s: float = 0.0  # seconds its conversion from the message took (counted in the frame's processing time)
+    unsupported_shapes: int = 0  # objects not converted because their shape is no box (Autoware CYLINDER, POLYGON)
 
     def split_by_frame(self, frame_id: str) -> tuple[list[Box3D], int]:
         """Boxes given in `frame_id`, and how many were in another frame (no tf here: those are skipped)."""
@@ -57,8 +58,10 @@ def _box(pose: Any, size: Any, label: str, instance_id: int) -> Box3D:
 
 
 def box_count(msg: Any) -> int:
-    """Boxes (markers or detections) in a boxes message, read before converting it."""
-    return len(msg.markers) if hasattr(msg, "markers") else len(msg.detections)
+    """Boxes (markers, detections or Autoware objects) in a boxes message, read before converting it."""
+    if hasattr(msg, "markers"):
+        return len(msg.markers)
+    return len(msg.objects) if hasattr(msg, "objects") else len(msg.detections)
 
 
 def markers_to_boxes(msg: Any, class_map: Mapping[str, str] | None = None) -> BoxSet:

@@ -22,9 +22,25 @@ SUBCOMMANDS = {
 }
 
 
+class _VersionAction(argparse.Action):
+    """--version: `gd_completion <version>` (package.xml's, through the installed metadata), read only when asked."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="print the version (gd_completion X.Y.Z) and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:
+        from gd_completion import __version__
+
+        print(f"gd_completion {__version__}")
+        parser.exit()
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """Parser with every subcommand registered, or only `command` when it names one."""
     parser = argparse.ArgumentParser(prog="gd-completion", description=__doc__)
+    parser.add_argument("--version", action=_VersionAction)
     subparsers = parser.add_subparsers(dest="command", required=True)
     names = [command] if command in SUBCOMMANDS else list(SUBCOMMANDS)
     for name in names:

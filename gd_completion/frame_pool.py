@@ -6,12 +6,13 @@ import signal
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Generic, TypeVar
 
 import numpy as np
 
 from gd_completion.geometry import Box3D
+from gd_completion.settings import CompletionSettings
 
 T = TypeVar("T")
 
@@ -19,14 +20,14 @@ _worker_completer: Any = None
 _worker_error: BaseException | None = None
 
 
-def _init_worker(model: str | None, options: dict[str, Any]) -> None:
+def _init_worker(settings: CompletionSettings) -> None:
     """Process pool initializer: one completer per worker process; a failure is kept and raised by each task."""
     global _worker_completer, _worker_error
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle (it shuts the pool down)
     try:
         from gd_completion.pipeline import VehicleCompleter
 
-        _worker_completer = VehicleCompleter.from_checkpoint(model or None, **options)
+        _worker_completer = VehicleCompleter.from_settings(settings)
     except Exception as error:  # noqa: BLE001 - raised in the main process by every task
         _worker_error = error
 
@@ -46,11 +47,11 @@ def _complete(completer: Any, points: np.ndarray, boxes: list[Box3D], stamp_ns: 
 
 class FramePool:
     """`submit(points, boxes)` completes one frame: with workers=1 at once, in this process, with `completer`
-    (default: loaded from `model`, vehicles on its threads); else in `workers` spawned processes (not forked:
-    torch and its threads), each with its own completer from `model` and `options` (1 vehicle thread by default).
+    (default: made from `settings`, vehicles on its threads); else in `workers` spawned processes (not forked:
+    torch and its threads), each with its own completer from `settings` (1 vehicle thread by default).
     """
 
-    def __init__(self, workers: int, model: str | None, options: dict[str, Any], completer: Any = None) -> None:
+    def __init__(self, workers: int, settings: CompletionSettings, completer: Any = None) -> None:
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         if completer is not None and workers > 1:
@@ -58,13 +59,13 @@ class FramePool:
         self.workers = workers
         self._pool: ProcessPoolExecutor | None = None
         if workers > 1:
-            options = {**options, "num_threads": options.get("num_threads") or 1}
+            settings = replace(settings, num_threads=settings.num_threads or 1)
             self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                             initializer=_init_worker, initargs=(model, options))
+                                             initializer=_init_worker, initargs=(settings,))
         elif completer is None:
             from gd_completion.pipeline import VehicleCompleter
 
-            completer = VehicleCompleter.from_checkpoint(model or None, **options)
+            completer = VehicleCompleter.from_settings(settings)
         self.completer = completer
 
     def run(self, task: Callable[..., T], *args: Any) -> Future[T]:

@@ -19,6 +19,7 @@ only the other queries are scanned.
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numba
@@ -514,6 +515,84 @@ def ball_query(query: np.ndarray, ref: np.ndarray, m: int, radius: float, block:
                 for s in range(m):
                     out[c, qi, s] = idx[qi, s] if s < k and not dist[qi, s] > r2 else idx[qi, 0]
     return out
+
+
+MAX_ICP_GRID_CELLS = 1 << 22  # cells of the target grid at most (the cell grows beyond max_distance past it)
+
+
+@numba.njit(cache=True, nogil=True)
+def icp_planar(source: np.ndarray, target: np.ndarray, max_distance: float, iterations: int
+                ) -> tuple[float, float, float, int]:
+    """(yaw, tx, ty, pairs) of the trimmed planar ICP of `source` onto `target` (float64 (n, 3), (m, 3))."""
+    lo = np.empty(3)
+    dims = np.empty(3, np.int64)
+    h = max_distance
+    for _ in range(64):  # grow the cell until the grid is small enough (a cell >= max_distance stays exact)
+        total = 1
+        for a in range(3):
+            lo[a] = target[:, a].min()
+            dims[a] = int((target[:, a].max() - lo[a]) / h) + 1
+            total *= dims[a]
+        if total <= MAX_ICP_GRID_CELLS:
+            break
+        h *= 2.0
+    start, order = bucket_points(target, lo, np.full(3, h), dims)
+
+    limit = max_distance * max_distance
+    yaw, tx, ty, pairs = 0.0, 0.0, 0.0, 0
+    k = np.empty(3, np.int64)
+    q = np.empty(3)
+    for _ in range(iterations):
+        cs, sn = math.cos(yaw), math.sin(yaw)
+        n = 0
+        sax = say = sbx = sby = dot = cross = 0.0
+        for i in range(source.shape[0]):
+            q[0] = cs * source[i, 0] - sn * source[i, 1] + tx
+            q[1] = sn * source[i, 0] + cs * source[i, 1] + ty
+            q[2] = source[i, 2]
+            outside = False
+            for a in range(3):
+                k[a] = int(math.floor((q[a] - lo[a]) / h))
+                if k[a] < -1 or k[a] > dims[a]:
+                    outside = True
+            if outside:
+                continue
+            best, hit = limit, -1
+            for x in range(max(k[0] - 1, 0), min(k[0] + 1, dims[0] - 1) + 1):
+                for y in range(max(k[1] - 1, 0), min(k[1] + 1, dims[1] - 1) + 1):
+                    for z in range(max(k[2] - 1, 0), min(k[2] + 1, dims[2] - 1) + 1):
+                        c = (x * dims[1] + y) * dims[2] + z
+                        for p in range(start[c], start[c + 1]):
+                            j = order[p]
+                            dx = target[j, 0] - q[0]
+                            dy = target[j, 1] - q[1]
+                            dz = target[j, 2] - q[2]
+                            d = dx * dx + dy * dy + dz * dz
+                            if d < best:
+                                best, hit = d, j
+            if hit < 0:
+                continue
+            ax, ay, bx, by = source[i, 0], source[i, 1], target[hit, 0], target[hit, 1]
+            n += 1
+            sax += ax
+            say += ay
+            sbx += bx
+            sby += by
+            dot += ax * bx + ay * by
+            cross += ax * by - ay * bx
+        pairs = n
+        if n == 0:
+            break
+        # closed-form planar Procrustes on the centred pairs
+        new_yaw = math.atan2(cross - (sax * sby - say * sbx) / n, dot - (sax * sbx + say * sby) / n)
+        cs, sn = math.cos(new_yaw), math.sin(new_yaw)
+        new_tx = (sbx - (cs * sax - sn * say)) / n
+        new_ty = (sby - (sn * sax + cs * say)) / n
+        moved = abs(new_yaw - yaw) + abs(new_tx - tx) + abs(new_ty - ty)
+        yaw, tx, ty = new_yaw, new_tx, new_ty
+        if moved < 1e-6:
+            break
+    return yaw, tx, ty, pairs
 
 
 def kernels_cached() -> bool:

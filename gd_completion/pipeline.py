@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from gd_completion.association import TRACK_ID_MODES, AssociationSettings, BoxAssociator, track_identity
+from gd_completion.class_maps import UNMAPPED
 from gd_completion.errors import DeviceError
 from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask, normalize
@@ -27,6 +28,7 @@ from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
 from gd_completion.reuse import DUE_UNCACHED, CachedCompletion, CompletionCache, Decision, ReuseSettings
 from gd_completion.sampling import resample_indices
+from gd_completion.settings import CompletionSettings
 
 __all__ = ["COMPLETION_DTYPE", "DEFAULT_LABELS", "LABEL_IDS", "FrameCompletion", "FrameStats", "VehicleCompleter",
            "check_device", "completion_to_structured", "default_threads"]
@@ -46,6 +48,7 @@ class FrameStats:
     skipped_boxes: list[tuple[Box3D, str]] = field(default_factory=list)   # each skipped box and its reason
     nonfinite_points: int = 0
     ignored_labels: int = 0
+    unmapped_class_ids: int = 0    # boxes whose numeric class id no class map names (`class_maps.UNMAPPED`)
     completions_run: int = 0       # vehicles the network completed this frame
     completions_reused: int = 0    # vehicles published from their track's cached completion (`reuse`)
     completions_deferred: int = 0  # of those, due for a re-run but left to a later frame by the budget
@@ -169,6 +172,29 @@ class VehicleCompleter:
         return cls(model, preprocessing=replace(preprocessing, **overrides), device=device,
                    threads=int(num_threads or default_threads()), **options)
 
+    @classmethod
+    def from_settings(cls, settings: CompletionSettings) -> VehicleCompleter:
+        """The completer of `settings` (`settings.CompletionSettings`: the node's parameters or the offline
+        tools' flags). `num_threads` 0 is one per core here; the node resolves its own rule before."""
+        return cls.from_checkpoint(
+            settings.model_path or None, device=settings.device, num_threads=settings.num_threads or None,
+            min_points=settings.min_points or None,
+            crop_margin=settings.crop_margin if settings.crop_margin >= 0 else None, limits=settings.limits,
+            labels=settings.labels, include_input_points=settings.include_input_points,
+            measured_merge=settings.measured_merge, track_ids=settings.track_ids,
+            association=settings.association, reuse=settings.reuse,
+            fusion=TrackFusion(settings.fusion) if settings.track_fusion else None,
+            publish_fused_points=settings.publish_fused_points)
+
+    def reset_tracks(self) -> None:
+        """Forget every track (association, completion cache, fused points), keeping their settings: a new
+        recording starts."""
+        self.associator = BoxAssociator(self.associator.settings)
+        if self.cache is not None:
+            self.cache = CompletionCache(self.cache.settings)
+        if self.fusion is not None:
+            self.fusion = TrackFusion(self.fusion.limits)
+
     def warm_up(self) -> None:
         """Complete one synthetic vehicle: compiles the CPU kernels (cached on disk after the first time,
         seconds before that) so that the first real frame is not the slow one."""
@@ -192,7 +218,9 @@ class VehicleCompleter:
             points = points[finite]
         usable: list[Box3D] = []
         for box in boxes:
-            if box.label not in self.labels:
+            if box.label == UNMAPPED:
+                stats.unmapped_class_ids += 1
+            elif box.label not in self.labels:
                 stats.ignored_labels += 1
             elif box_problem(box) is not None:
                 stats.skip(box, "degenerate_box")

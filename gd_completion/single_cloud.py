@@ -6,7 +6,7 @@ import math
 import threading
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -15,11 +15,12 @@ import numpy as np
 from gd_completion.datasets.kitti import labels_to_boxes, read_calib, read_labels
 from gd_completion.errors import BoxError, DataFormatError
 from gd_completion.geometry import Box3D, box_problem, crop_boxes, finite_mask
+from gd_completion.settings import CompletionSettings
 
 BOX_FORMAT = "cx,cy,cz,length,width,height,yaw[,label]"
 VEHICLES = ("car", "van", "truck")  # the labels completed (pipeline.LABEL_IDS; not imported: it imports torch)
 
-_completers: dict[tuple[Any, ...], Any] = {}
+_completers: dict[str, Any] = {}
 _completers_lock = threading.Lock()
 
 
@@ -118,18 +119,21 @@ def points_in_boxes(points: np.ndarray, boxes: Sequence[Box3D]) -> list[int]:
     return [len(idx) for idx in crop_boxes(points[finite_mask(points)], boxes, 0.0)] if boxes else []
 
 
-def completer(model: str | Path | None = None, *, device: str = "cpu", threads: int = 0,
-              min_points: int | None = None, include_input_points: bool = True) -> Any:
-    """The `VehicleCompleter` for these options, loaded once per process (later calls reuse it)."""
-    key = (str(Path(model).resolve()) if model else "", device, int(threads), min_points, bool(include_input_points))
+def completer(settings: CompletionSettings) -> Any:
+    """The `VehicleCompleter` of `settings`, made once per process (later calls with equal settings reuse it)."""
+    key = repr(replace(settings, model_path=str(Path(settings.model_path).resolve()) if settings.model_path else ""))
     with _completers_lock:
         if key not in _completers:
-            from gd_completion.limits import OFFLINE_LIMITS
             from gd_completion.pipeline import VehicleCompleter
-            _completers[key] = VehicleCompleter.from_checkpoint(   # offline: no time budget, every box completed
-                model, device=device, num_threads=threads or None, min_points=min_points,
-                include_input_points=include_input_points, limits=OFFLINE_LIMITS)
+            _completers[key] = VehicleCompleter.from_settings(settings)
         return _completers[key]
+
+
+def cloud_settings(model: str | Path | None = None, *, device: str = "cpu", threads: int = 0,
+                   min_points: int | None = None, include_input_points: bool = True) -> CompletionSettings:
+    """The offline settings (no time budget: every box completed) of `complete_cloud`'s keyword arguments."""
+    return CompletionSettings.offline(model_path=str(model or ""), device=device, num_threads=int(threads),
+                                      min_points=int(min_points or 0), include_input_points=include_input_points)
 
 
 # What the pipeline's skip reasons mean, for messages (gd_completion.limits.FrameLimits).
@@ -143,10 +147,9 @@ SKIP_REASONS = {
 }
 
 
-def complete_cloud_report(points: np.ndarray, boxes: Sequence[Box3D | Sequence[Any]], *,
-                          model: str | Path | None = None, device: str = "cpu", threads: int = 0,
-                          min_points: int | None = None, include_input_points: bool = True) -> CloudCompletion:
-    """`complete_cloud`, with the boxes skipped and why."""
+def complete_cloud_report(points: np.ndarray, boxes: Sequence[Box3D | Sequence[Any]],
+                          settings: CompletionSettings | None = None, **options: Any) -> CloudCompletion:
+    """`complete_cloud`, with the boxes skipped and why; `settings` (default: `cloud_settings(**options)`)."""
     from gd_completion.pipeline import completion_to_structured
 
     xyz = cloud_xyz(points)
@@ -154,8 +157,7 @@ def complete_cloud_report(points: np.ndarray, boxes: Sequence[Box3D | Sequence[A
     ids = [box.instance_id for box in parsed]
     if len(set(ids)) != len(ids):
         raise BoxError(f"boxes: instance ids are not unique ({sorted(i for i in set(ids) if ids.count(i) > 1)})")
-    engine = completer(model, device=device, threads=threads, min_points=min_points,
-                       include_input_points=include_input_points)
+    engine = completer(settings or cloud_settings(**options))
     result = engine.complete_frame(xyz, parsed)
     table = completion_to_structured(result)
     finite = xyz[finite_mask(xyz)]
@@ -174,19 +176,22 @@ def complete_cloud_report(points: np.ndarray, boxes: Sequence[Box3D | Sequence[A
     return CloudCompletion(table, skipped, Counter(result.stats.skipped), int(result.stats.completed))
 
 
-def complete_cloud(points: np.ndarray, boxes: Sequence[Box3D | Sequence[Any]], *,
-                   model: str | Path | None = None, device: str = "cpu", threads: int = 0,
-                   min_points: int | None = None, include_input_points: bool = True) -> np.ndarray:
+def complete_cloud(points: np.ndarray, boxes: Sequence[Box3D | Sequence[Any]],
+                   settings: CompletionSettings | None = None, *, model: str | Path | None = None,
+                   device: str = "cpu", threads: int = 0, min_points: int | None = None,
+                   include_input_points: bool = True) -> np.ndarray:
     """Complete the vehicles of one cloud: a structured array (`pipeline.COMPLETION_DTYPE`: x, y, z float32,
     instance_id int32, label uint8 1 car 2 van 3 truck, generated uint8) in the frame of `points`.
 
     `points`: (N, 3+) array (or structured with x, y, z); `boxes`: Box3D, or (cx, cy, cz, length, width, height,
     yaw[, label]) tuples (instance id = 1-based position). `model`: checkpoint (None: the shipped weights), loaded
     once per process and options; `threads`: vehicles completed in parallel (0: one per core); `min_points`:
-    the checkpoint's when None. Boxes with too few points are left out (see `complete_cloud_report`).
+    the checkpoint's when None. `settings` (`settings.CompletionSettings`), when given, replaces those keyword
+    arguments. Boxes with too few points are left out (see `complete_cloud_report`).
     """
-    return complete_cloud_report(points, boxes, model=model, device=device, threads=threads, min_points=min_points,
-                                 include_input_points=include_input_points).points
+    return complete_cloud_report(points, boxes, settings or cloud_settings(
+        model, device=device, threads=threads, min_points=min_points, include_input_points=include_input_points)
+    ).points
 
 
 def describe(box: Box3D) -> str:

@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
-# Build vision_msgs Python bindings from gd_completion/msg/vision_msgs/*.msg into <build_dir>/install
-# (default: build/interfaces in the repository).
+# Build the Python bindings of the message packages that have no PyPI wheel from gd_completion/msg/<package>/*.msg
+# into <build_dir>/install (default: build/interfaces in the repository): vision_msgs, tf2_msgs (TFMessage) and
+# autoware_perception_msgs (DetectedObjects, TrackedObjects). One CMake package per message package, built in the
+# order of PACKAGES (a package may depend on an earlier one) and installed into the same prefix, so one PYTHONPATH /
+# LD_LIBRARY_PATH / AMENT_PREFIX_PATH entry serves all of them.
 #
 # Uses only the virtualenv ($GD_VENV, else <repo>/.venv, else $VIRTUAL_ENV): the ROS 2 Jazzy PyPI wheels
 # put their CMake configs under <venv>/share and their libraries under <venv>/lib, so the venv is the ament
@@ -20,15 +23,36 @@ elif [ -x "$repo/.venv/bin/python" ] || [ -z "${VIRTUAL_ENV:-}" ]; then venv="$r
 else venv=$VIRTUAL_ENV
 fi
 python="$venv/bin/python"
-msg_dir="$repo/gd_completion/msg/vision_msgs"
+msg_root="$repo/gd_completion/msg"
 install="$build_dir/install"
 stamp="$install/.gd_interfaces_stamp"
 
-[ -x "$python" ] || { echo "build_interfaces: no python at $python (run scripts/install.sh)" >&2; exit 2; }
-[ -d "$msg_dir" ] || { echo "build_interfaces: no message folder $msg_dir" >&2; exit 2; }
+# Build order; each package's version, licence and dependencies (the wheels' packages or earlier entries).
+PACKAGES=(vision_msgs tf2_msgs autoware_perception_msgs)
+package_info() {  # <package> -> sets version, license, deps
+  case $1 in
+    vision_msgs) version=4.1.1 license="Apache License 2.0" deps="std_msgs geometry_msgs" ;;
+    tf2_msgs) version=0.36.4 license="BSD" deps="builtin_interfaces geometry_msgs" ;;
+    autoware_perception_msgs)
+      version=1.12.0 license="Apache License 2.0"
+      deps="builtin_interfaces std_msgs geometry_msgs unique_identifier_msgs" ;;
+    *) echo "build_interfaces: unknown package $1" >&2; exit 2 ;;
+  esac
+}
 
-want=$( (cd "$msg_dir" && cat ./*.msg; cat "$self"; echo "$venv"; \
-         ls "$venv"/lib/python3*/site-packages | grep -E '^ros_.*dist-info$') | sha256sum | cut -d' ' -f1)
+[ -x "$python" ] || { echo "build_interfaces: no python at $python (run scripts/install.sh)" >&2; exit 2; }
+for pkg in "${PACKAGES[@]}"; do
+  compgen -G "$msg_root/$pkg/*.msg" >/dev/null || { echo "build_interfaces: no .msg files in $msg_root/$pkg" >&2; exit 2; }
+done
+
+msg_texts() {  # every package's .msg files, each under its name
+  local pkg f
+  for pkg in "${PACKAGES[@]}"; do
+    for f in "$msg_root/$pkg"/*.msg; do echo "== $pkg/${f##*/}"; cat "$f"; done
+  done
+}
+want=$( (msg_texts; cat "$self"; echo "$venv"; ls "$venv"/lib/python3*/site-packages | grep -E '^ros_.*dist-info$') \
+       | sha256sum | cut -d' ' -f1)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
   exit 0
 fi
@@ -40,53 +64,58 @@ if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
   exit 0
 fi
 
-# The wheels' own environment: venv libraries, venv as the only ament/cmake prefix.
+# The wheels' own environment: venv libraries, venv (then the packages installed so far) as the ament/cmake prefix.
 export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1
 site=$("$python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
 py_include=$("$python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
 np_include=$("$python" -c 'import numpy; print(numpy.get_include())')
-export LD_LIBRARY_PATH="$venv/lib:$(ls -d "$site"/ros_*.libs 2>/dev/null | paste -sd:)${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
-export AMENT_PREFIX_PATH="$venv"
-export CMAKE_PREFIX_PATH="$venv"
+export LD_LIBRARY_PATH="$install/lib:$venv/lib:$(ls -d "$site"/ros_*.libs 2>/dev/null | paste -sd:)${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+export AMENT_PREFIX_PATH="$install:$venv"
+export CMAKE_PREFIX_PATH="$install;$venv"
 export PATH="$venv/bin:$PATH"
 export PYTHONPATH="$site${PYTHONPATH:+:$PYTHONPATH}"
 export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
 
-src="$build_dir/src/vision_msgs"
-rm -rf "$src/msg"
-mkdir -p "$src/msg"
-cp "$msg_dir"/*.msg "$src/msg/"
-msgs=$(cd "$src" && ls msg/*.msg | sed 's/^/  "/; s/$/"/')
+generator=()
+command -v ninja >/dev/null && generator=(-G Ninja)
+log="$build_dir/build.log"
+: > "$log"
+run() { "$@" >>"$log" 2>&1 || { echo "build_interfaces: failed: $* (log: $log)" >&2; tail -40 "$log" >&2; exit 1; }; }
+# Before several packages, <build_dir>/cmake was vision_msgs' own build folder.
+[ -f "$build_dir/cmake/CMakeCache.txt" ] && rm -rf "$build_dir/cmake"
 
-cat > "$src/package.xml" <<'EOF'
+write_package() {  # <package> <src>: package.xml and CMakeLists.txt of one message package
+  local pkg=$1 src=$2 dep msgs depends="" finds="" version license deps
+  package_info "$pkg"
+  msgs=$(cd "$src" && ls msg/*.msg | sed 's/^/  "/; s/$/"/')
+  for dep in $deps; do
+    depends+="  <depend>$dep</depend>"$'\n'
+    finds+="find_package($dep REQUIRED)"$'\n'
+  done
+  cat > "$src/package.xml" <<EOF
 <?xml version="1.0"?>
 <?xml-model href="http://download.ros.org/schema/package_format3.xsd" schematypens="http://www.w3.org/2001/XMLSchema"?>
 <package format="3">
-  <name>vision_msgs</name>
-  <version>4.1.1</version>
-  <description>Subset of vision_msgs (ROS 2 Jazzy, 4.x) built locally for gd_completion.</description>
+  <name>$pkg</name>
+  <version>$version</version>
+  <description>Subset of $pkg (ROS 2 Jazzy) built locally for gd_completion.</description>
   <maintainer email="dev@gd-completion.invalid">gd_completion developers</maintainer>
-  <license>Apache License 2.0</license>
+  <license>$license</license>
   <buildtool_depend>ament_cmake</buildtool_depend>
   <buildtool_depend>rosidl_default_generators</buildtool_depend>
-  <depend>std_msgs</depend>
-  <depend>geometry_msgs</depend>
-  <exec_depend>rosidl_default_runtime</exec_depend>
+$depends  <exec_depend>rosidl_default_runtime</exec_depend>
   <member_of_group>rosidl_interface_packages</member_of_group>
   <export>
     <build_type>ament_cmake</build_type>
   </export>
 </package>
 EOF
-
-cat > "$src/CMakeLists.txt" <<EOF
+  cat > "$src/CMakeLists.txt" <<EOF
 cmake_minimum_required(VERSION 3.16)
-project(vision_msgs)
+project($pkg)
 find_package(ament_cmake REQUIRED)
 find_package(rosidl_default_generators REQUIRED)
-find_package(std_msgs REQUIRED)
-find_package(geometry_msgs REQUIRED)
-
+$finds
 # The PyPI wheels export /opt/python/cp311-cp311 include dirs (the manylinux build Python): point them at this venv.
 get_property(_imported DIRECTORY PROPERTY IMPORTED_TARGETS)
 foreach(_t IN LISTS _imported)
@@ -100,34 +129,38 @@ endforeach()
 
 rosidl_generate_interfaces(\${PROJECT_NAME}
 $msgs
-  DEPENDENCIES std_msgs geometry_msgs
+  DEPENDENCIES $deps
 )
 ament_export_dependencies(rosidl_default_runtime)
 ament_package()
 EOF
+}
 
-generator=()
-command -v ninja >/dev/null && generator=(-G Ninja)
-obj="$build_dir/cmake"
-if [ -f "$obj/CMakeCache.txt" ] && ! grep -q "CMAKE_INSTALL_PREFIX:PATH=$install\$" "$obj/CMakeCache.txt"; then
-  rm -rf "$obj"
-fi
-if [ -f "$obj/CMakeCache.txt" ] && [ ${#generator[@]} -gt 0 ] && ! grep -q "CMAKE_GENERATOR:INTERNAL=Ninja" "$obj/CMakeCache.txt"; then
-  rm -rf "$obj"
-fi
-log="$build_dir/build.log"
-: > "$log"
-run() { "$@" >>"$log" 2>&1 || { echo "build_interfaces: failed: $* (log: $log)" >&2; tail -40 "$log" >&2; exit 1; }; }
-run cmake -S "$src" -B "$obj" "${generator[@]}" \
-  -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF \
-  -DCMAKE_INSTALL_PREFIX="$install" \
-  -DCMAKE_PREFIX_PATH="$venv" \
-  -DPython3_EXECUTABLE="$python" -DPython3_FIND_STRATEGY=LOCATION -DPython3_FIND_VIRTUALENV=ONLY \
-  -DPython3_INCLUDE_DIR="$py_include" -DPython3_NumPy_INCLUDE_DIR="$np_include" \
-  -DPYTHON_EXECUTABLE="$python" \
-  -DCMAKE_INSTALL_RPATH="\$ORIGIN;\$ORIGIN/../../..;$install/lib;$venv/lib" \
-  -DCMAKE_BUILD_WITH_INSTALL_RPATH=OFF
-run cmake --build "$obj" -j "${GD_BUILD_JOBS:-2}"
-run cmake --install "$obj"
+for pkg in "${PACKAGES[@]}"; do
+  src="$build_dir/src/$pkg"
+  rm -rf "$src/msg"
+  mkdir -p "$src/msg"
+  cp "$msg_root/$pkg"/*.msg "$src/msg/"
+  write_package "$pkg" "$src"
+  obj="$build_dir/cmake/$pkg"
+  if [ -f "$obj/CMakeCache.txt" ] && ! grep -q "CMAKE_INSTALL_PREFIX:PATH=$install\$" "$obj/CMakeCache.txt"; then
+    rm -rf "$obj"
+  fi
+  if [ -f "$obj/CMakeCache.txt" ] && [ ${#generator[@]} -gt 0 ] && ! grep -q "CMAKE_GENERATOR:INTERNAL=Ninja" "$obj/CMakeCache.txt"; then
+    rm -rf "$obj"
+  fi
+  echo "=== $pkg" >> "$log"
+  run cmake -S "$src" -B "$obj" "${generator[@]}" \
+    -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF \
+    -DCMAKE_INSTALL_PREFIX="$install" \
+    -DCMAKE_PREFIX_PATH="$install;$venv" \
+    -DPython3_EXECUTABLE="$python" -DPython3_FIND_STRATEGY=LOCATION -DPython3_FIND_VIRTUALENV=ONLY \
+    -DPython3_INCLUDE_DIR="$py_include" -DPython3_NumPy_INCLUDE_DIR="$np_include" \
+    -DPYTHON_EXECUTABLE="$python" \
+    -DCMAKE_INSTALL_RPATH="\$ORIGIN;\$ORIGIN/../../..;$install/lib;$venv/lib" \
+    -DCMAKE_BUILD_WITH_INSTALL_RPATH=OFF
+  run cmake --build "$obj" -j "${GD_BUILD_JOBS:-2}"
+  run cmake --install "$obj"
+done
 echo "$want" > "$stamp"
-echo "build_interfaces: vision_msgs installed in $install"
+echo "build_interfaces: ${PACKAGES[*]} installed in $install"

@@ -24,8 +24,9 @@ from gd_completion.cli import main
 from gd_completion.errors import GDCompletionError
 from gd_completion.geometry import Box3D
 from gd_completion.pointcloud2 import read_points, write_points
+from gd_completion.ros.player import CLOCK_TOPIC
+from gd_completion.settings import CompletionSettings
 from gd_completion.stamp_sync import SYNC_TOLERANCE_S, stamp_to_ns
-from gd_completion.tools.play import CLOCK_TOPIC
 from gd_completion.tools.render import read_frame
 
 pytestmark = pytest.mark.integration  # processes, ROS nodes, builds or bags: the slow part of the suite
@@ -122,8 +123,8 @@ def test_complete_without_measured_merge(kitti_bag: Path, completed_bag: Path, m
 
 def test_complete_sqlite3_output(kitti_bag: Path, model_path: str, tmp_path: Path) -> None:
     out = tmp_path / "done"
-    summary = complete_bag(kitti_bag, out, model=model_path, storage="sqlite3", progress=False,
-                           output_topic="/vehicles")
+    summary = complete_bag(kitti_bag, out, CompletionSettings.offline(model_path=model_path), storage="sqlite3",
+                           progress=False, output_topic="/vehicles")
     assert (out / "done.db3").is_file() and summary.frames == 6 and summary.vehicles_completed > 0
     assert "6 frames" in summary.text()
     assert len(_raw(out)[1]["/vehicles"]) == 6
@@ -157,7 +158,7 @@ def _all_raw(path: Path) -> list[tuple[str, int, bytes]]:
 def test_complete_workers_match_one_process(kitti_bag: Path, completed_bag: Path, model_path: str,
                                             tmp_path: Path) -> None:
     out = tmp_path / "parallel"
-    summary = complete_bag(kitti_bag, out, model=model_path, workers=2, progress=False)
+    summary = complete_bag(kitti_bag, out, CompletionSettings.offline(model_path=model_path), workers=2, progress=False)
     assert summary.frames == 6 and summary.vehicles_completed > 0
     assert summary.copied_messages == len(_all_raw(kitti_bag))
     assert _raw(out)[0] == _raw(completed_bag)[0]  # connections: types, definitions, QoS
@@ -253,7 +254,7 @@ def test_bad_bags(case: str, kitti_bag: Path, model_path: str, tmp_path: Path,
 def test_marker_boxes_and_unknown_types_are_copied(model_path: str, tmp_path: Path) -> None:
     src = tmp_path / "in"
     _write_bag(src, with_boxes=True)
-    summary = complete_bag(src, tmp_path / "out", model=model_path, progress=False)
+    summary = complete_bag(src, tmp_path / "out", CompletionSettings.offline(model_path=model_path), progress=False)
     assert summary.frames == 2 and dict(summary.skipped) == {"too_few_points": 2}
     assert _raw(tmp_path / "out")[1]["/other"] == _raw(src)[1]["/other"]
 
@@ -288,7 +289,7 @@ def test_unknown_type_without_definition(model_path: str, tmp_path: Path, capsys
 def test_boxes_in_another_frame_are_skipped_and_counted(model_path: str, tmp_path: Path) -> None:
     src = tmp_path / "in"
     _write_bag(src, with_boxes=True, boxes_frame="map")   # the clouds are in "lidar"; no tf offline
-    summary = complete_bag(src, tmp_path / "out", model=model_path, progress=False)
+    summary = complete_bag(src, tmp_path / "out", CompletionSettings.offline(model_path=model_path), progress=False)
     assert summary.frames == 2 and summary.boxes_wrong_frame == 2 and dict(summary.skipped) == {}
     assert summary.counters()["boxes_wrong_frame"] == 2 and "boxes_wrong_frame 2" in summary.text()
 
@@ -322,7 +323,8 @@ def test_complete_pairs_boxes_within_the_sync_tolerance(delayed_boxes_bag: Path,
     assert [s for s, _ in delayed["/kitti/detections"]] == [s + DETECTOR_DELAY_NS for s, _ in
                                                           delayed["/kitti/points"]]
     out = tmp_path / "paired"
-    summary = complete_bag(delayed_boxes_bag, out, model=model_path, num_threads=1, progress=False)
+    summary = complete_bag(delayed_boxes_bag, out, CompletionSettings.offline(model_path=model_path, num_threads=1),
+                           progress=False)
     reference = _raw(completed_bag)[1]["/kitti/completed"]
     assert summary.frames == 6 and summary.sync.paired == 6 and summary.frames_without_boxes == 0
     vehicles = sum(len(np.unique(read_points(deserialize(raw, POINTCLOUD2))["instance_id"])) for _, raw in reference)
@@ -344,8 +346,8 @@ def test_complete_pairs_boxes_within_the_sync_tolerance(delayed_boxes_bag: Path,
 
 
 def test_complete_counts_pairing_as_the_node(delayed_boxes_bag: Path, model_path: str, tmp_path: Path) -> None:
-    summary = complete_bag(delayed_boxes_bag, tmp_path / "out", model=model_path, num_threads=1, progress=False,
-                           sync_tolerance=0.001)
+    settings = CompletionSettings.offline(model_path=model_path, num_threads=1, sync_tolerance=0.001)
+    summary = complete_bag(delayed_boxes_bag, tmp_path / "out", settings, progress=False)
     counters = summary.counters()
     assert summary.frames == 6 and summary.frames_without_boxes == 6 and summary.vehicles_completed == 0
     assert (counters["frames_paired"], counters["drop_cloud_no_boxes"], counters["drop_boxes_no_cloud"]) == (0, 6, 6)
@@ -381,8 +383,8 @@ def test_complete_records_provenance(completed_bag: Path, model_path: str, tmp_p
     assert completer["preprocessing"]["min_points"] == 20 and completer["preprocessing"]["crop_margin"] == 0.1
     # the sqlite3 storage keeps the same metadata
     out = tmp_path / "db"
-    complete_bag(completed_bag, out, model=model_path, storage="sqlite3", progress=False, output_topic="/again",
-                 min_points=50)
+    complete_bag(completed_bag, out, CompletionSettings.offline(model_path=model_path, min_points=50),
+                 storage="sqlite3", progress=False, output_topic="/again")
     again = read_provenance(out)
     assert again["gd_completion.model_sha256"] == info["gd_completion.model_sha256"]
     assert json.loads(again["gd_completion.parameters"])["completer"]["preprocessing"]["min_points"] == 50
@@ -512,9 +514,9 @@ def test_play_detections_with_vision_msgs(kitti_bag: Path, monkeypatch: pytest.M
 
 
 def test_foxglove_layout_names_the_written_topics() -> None:
+    from gd_completion.bags.dataset_conversion import KITTI_TOPICS
     from gd_completion.bags.topics import default_output_topic
     from gd_completion.datasets import pandaset
-    from gd_completion.tools.convert import KITTI_TOPICS
 
     layout = json.loads((REPO / "foxglove" / "gd_completion_layout.json").read_text())
     panels = {k: v for k, v in layout["configById"].items() if k.startswith("3D!")}

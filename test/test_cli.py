@@ -49,3 +49,27 @@ def test_unknown_verb_lists_every_verb():
     assert "invalid choice: 'frobnicate'" in proc.stderr
     for verb in ("demo", "train", "convert", "complete", "play", "render", "evaluate"):
         assert f"'{verb}'" in proc.stderr
+
+
+def _package_xml_version() -> str:
+    import re
+
+    found = re.search(r"<version>([^<]+)</version>", (REPO / "package.xml").read_text())
+    assert found
+    return found.group(1)
+
+
+def test_version_is_package_xml_and_imports_nothing_heavy():
+    """`gd-completion --version` prints `gd_completion <package.xml's version>` (through the installed metadata, as
+    `gd_completion.__version__`), exit 0, without importing torch or rclpy; also after a verb's name is known."""
+    from gd_completion import __version__
+
+    assert __version__ == _package_xml_version()
+    proc = subprocess.run([sys.executable, "-c", PARSE_AND_LIST_MODULES, "--version"], cwd=REPO,
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == [f"gd_completion {__version__}", "heavy modules: []"]
+    script = Path(sys.executable).parent / "gd-completion"
+    if script.is_file():  # the installed console script
+        done = subprocess.run([str(script), "--version"], capture_output=True, text=True, timeout=120, check=False)
+        assert (done.returncode, done.stdout, done.stderr) == (0, f"gd_completion {__version__}\n", "")

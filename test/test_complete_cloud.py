@@ -150,14 +150,14 @@ def test_box_option_and_json_match_the_labels(tmp_path, kitti, reference):
 
 def test_api_accepts_tuples_and_caches_the_model(kitti, reference):
     from gd_completion import complete_cloud
-    from gd_completion.single_cloud import completer
+    from gd_completion.single_cloud import cloud_settings, completer
     boxes = kitti_boxes(kitti["label"], kitti["calib"])
     tuples = [(*b.center, *b.size, b.yaw, b.label) for b in boxes]
     np.testing.assert_array_equal(complete_cloud(read_xyz(kitti["scan"]), tuples, threads=1), reference)
-    assert completer(threads=1) is completer(threads=1)
+    assert completer(cloud_settings(threads=1)) is completer(cloud_settings(threads=1))
     # offline: what it writes never depends on the machine's load (the node's 2 s frame budget skipped vehicles
     # of this frame on a loaded machine)
-    assert completer(threads=1).limits.time_budget_s == math.inf
+    assert completer(cloud_settings(threads=1)).limits.time_budget_s == math.inf
 
 
 @pytest.mark.parametrize(("argv", "message"), [

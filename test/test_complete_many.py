@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from gd_completion.bags.batch import BagJob, complete_many, expand_inputs, plan_jobs, ray_resources
 from gd_completion.cli import main
 from gd_completion.errors import BagError
-from gd_completion.tools.complete_many import BagJob, complete_many, expand_inputs, plan_jobs, ray_resources
+from gd_completion.settings import CompletionSettings
 
 KITTI = "kitti-object-sample/training"
 NAMES = ("a", "b", "c")  # three bags of two KITTI frames each
@@ -151,8 +152,8 @@ def local_ray():
 def test_ray_matches_local(local_ray, small_bags: Path, local_outputs: Path, model_path: str,
                            tmp_path: Path) -> None:
     jobs = plan_jobs([str(small_bags / "*")], tmp_path / "ray")
-    outcomes = complete_many(jobs, engine="ray", workers=2, model=model_path, progress=False,
-                             completer_options={"num_threads": 1})
+    outcomes = complete_many(jobs, CompletionSettings.offline(model_path=model_path, num_threads=1), engine="ray",
+                             workers=2, progress=False)
     assert [o.status for o in outcomes] == ["done"] * 3, [o.detail for o in outcomes]
     assert sum(o.frames for o in outcomes) == 6
     for name in NAMES:  # every file byte for byte: messages, metadata and provenance (the engine is not recorded)
@@ -170,8 +171,8 @@ def test_ray_resumes_and_reports_bad_bags(local_ray, small_bags: Path, local_out
     (out / ".a.abcd.partial").mkdir()
     jobs = [BagJob(small_bags / n, out / n) for n in NAMES] + [BagJob(tmp_path / "broken", out / "broken")]
     seen: list[str] = []
-    outcomes = complete_many(jobs, engine="ray", workers=2, model=model_path, progress=False,
-                             report=lambda o: seen.append(o.job.name), completer_options={"num_threads": 1})
+    outcomes = complete_many(jobs, CompletionSettings.offline(model_path=model_path, num_threads=1), engine="ray",
+                             workers=2, progress=False, report=lambda o: seen.append(o.job.name))
     assert [o.status for o in outcomes] == ["done", "done", "skipped", "failed"]
     assert sorted(seen) == ["a", "b", "broken"]  # c was not processed again
     assert outcomes[3].detail.startswith(f"{tmp_path / 'broken'}: ") and "cannot open bag" in outcomes[3].detail

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gd_completion.bags.hesai_conversion import PANDAR_SCAN
 from gd_completion.bags.messages import header, stamp
 from gd_completion.bags.reader import iter_raw, open_bag
 from gd_completion.bags.typestore import deserialize, message_class, serialize
@@ -17,7 +18,7 @@ from gd_completion.hesai.decoder import ReturnType
 from gd_completion.hesai.packets import packet_time_s, packets_to_array, parse_packets
 from gd_completion.pointcloud2 import read_points
 from gd_completion.stamp_sync import stamp_to_ns
-from gd_completion.tools.convert_hesai import PANDAR_SCAN, add_hesai_parser
+from gd_completion.tools.convert_hesai import add_hesai_parser
 
 CASES = {
     "40p": ("40p/1673400149412331409", "40p/1673400149711850138.pcd", "Pandar40P.csv", 1673400149711850138),

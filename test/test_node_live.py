@@ -63,6 +63,8 @@ def ros_context(tmp_path_factory):
             os.environ[k] = v
 
 
+# kitti_frames.detection_array numbers the classes 1/2/3 (OpenPCDet's style): numeric ids complete only through a map
+NUMBERED_CLASSES = {"boxes_type": "detection3d", "class_map": "['1:car','2:van','3:truck']"}
 # reuse off: these tests expect every vehicle of every frame completed by the network (with reuse, a vehicle never
 # completed may wait a frame for the frame budget); test_reuse_live turns it on
 BASE_PARAMS = {"num_threads": "1", "boxes_type": "marker", "sync_tolerance": "0.05", "sync_max_wait": "2.0",
@@ -364,7 +366,7 @@ def test_detection3d_boxes_live_and_sigint(ros_context, frames, tmp_path):
     from kitti_frames import detection_array
 
     env = interfaces.vision_msgs_env({**os.environ, **ros_context[0]})
-    with own_node(ros_context, tmp_path, "detection3d", signal.SIGINT, params={"boxes_type": "detection3d"},
+    with own_node(ros_context, tmp_path, "detection3d", signal.SIGINT, params=NUMBERED_CLASSES,
                   env=env, boxes_cls=msgs.Detection3DArray) as (node, client):
         assert "vision_msgs/msg/Detection3DArray" in node.stderr
         client.boxes_msg = detection_array
@@ -479,7 +481,7 @@ def test_detection_id_beyond_int32_is_hashed(ros_context, frames, tmp_path):
             det.id = "99999999999"
         return array
     env = interfaces.vision_msgs_env({**os.environ, **ros_context[0]})
-    with own_node(ros_context, tmp_path, "bigid", params={"boxes_type": "detection3d"}, env=env,
+    with own_node(ros_context, tmp_path, "bigid", params=NUMBERED_CLASSES, env=env,
                   boxes_cls=msgs.Detection3DArray) as (node, client):
         client.boxes_msg = with_big_id
         client.warm_up(frames[3])

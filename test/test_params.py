@@ -62,9 +62,10 @@ def test_unknown_parameters_and_params_file_sections(tmp_path):
 
 
 def test_live_and_read_only_parameters():
-    from gd_completion.ros.params import LIMIT_PARAMETERS, LIVE_PARAMETERS, PARAMETERS
+    from gd_completion.ros.params import LIVE_PARAMETERS, PARAMETERS
+    from gd_completion.settings import LIMIT_SETTINGS
 
-    assert LIVE_PARAMETERS <= set(PARAMETERS) and set(LIMIT_PARAMETERS) <= LIVE_PARAMETERS
+    assert LIVE_PARAMETERS <= set(PARAMETERS) and set(LIMIT_SETTINGS) <= LIVE_PARAMETERS
     assert {"cloud_topic", "model_path", "device", "num_threads", "queue_size"}.isdisjoint(LIVE_PARAMETERS)
 
 

@@ -66,7 +66,8 @@ def test_unknown_track_id_modes_are_refused(model) -> None:
     values = {name: default for name, (default, _, _) in PARAMETERS.items()}
     with pytest.raises(ParameterError, match="parameter track_ids='uuid' must be one of"):
         validate({**values, "track_ids": "uuid"})
-    assert validate(values).reuse is not None and validate({**values, "reuse": False}).reuse is None
+    assert validate(values).settings.reuse is not None
+    assert validate({**values, "reuse": False}).settings.reuse is None
 
 
 def test_association_agrees_with_pandaset_ids_hidden(shared_data) -> None:

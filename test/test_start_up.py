@@ -74,3 +74,23 @@ def test_help_imports_neither_torch_nor_rclpy_and_survives_a_closed_pipe(tmp_pat
     piped = subprocess.run(f"{sys.executable} -m gd_completion.ros.completer_main --help | head -1", shell=True,
                            cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert piped.stdout.startswith("usage: completer") and "Traceback" not in piped.stderr
+
+
+def test_version_imports_neither_torch_nor_rclpy(tmp_path) -> None:
+    """`completer --version` prints `gd_completion <package.xml's version>` and exits 0 at once."""
+    import re
+
+    from gd_completion import __version__
+
+    found = re.search(r"<version>([^<]+)</version>", (REPO / "package.xml").read_text())
+    assert found and __version__ == found.group(1)
+    env = {**os.environ, **ros_env(tmp_path), "PYTHONPATH": str(REPO)}
+    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "gd_completion.ros.completer_main", "--version"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stdout) == (0, f"gd_completion {__version__}\n")
+    imported = {line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines() if line.startswith("import time")}
+    assert not {"torch", "rclpy", "gd_completion.ros.params", "gd_completion.pipeline"} & imported
+    script = Path(sys.executable).parent / "completer"
+    if script.is_file():  # the installed console script
+        done = subprocess.run([str(script), "--version"], env=env, capture_output=True, text=True, timeout=60)
+        assert (done.returncode, done.stdout, done.stderr) == (0, f"gd_completion {__version__}\n", "")

@@ -1,5 +1,5 @@
 """Bag completion: copy a bag byte for byte and add the completed vehicles of every cloud (`complete_bag`), as
-`gd-completion complete` and the batch engine (`tools/complete_many`) run it."""
+`gd-completion complete` and the batch engine (`bags/batch`) run it."""
 from __future__ import annotations
 
 import sys
@@ -20,10 +20,10 @@ from gd_completion.bags.typestore import POINTCLOUD2, serialize
 from gd_completion.bags.writer import add_connection, atomic_bag_writer, copy_connection, has_definition
 from gd_completion.errors import BagError, GDCompletionError
 from gd_completion.frame_pool import FramePool, InOrder
-from gd_completion.limits import OFFLINE_LIMITS
 from gd_completion.pointcloud2 import read_xyz, write_points
 from gd_completion.progress import progress_bar
-from gd_completion.stamp_sync import SYNC_TOLERANCE_S, SyncCounters
+from gd_completion.settings import CompletionSettings
+from gd_completion.stamp_sync import SyncCounters
 
 
 @dataclass
@@ -35,6 +35,7 @@ class CompletionSummary:
     vehicles_completed: int = 0
     skipped: Counter = field(default_factory=Counter)  # vehicles per reason (`skipped_<reason>` in the node)
     ignored_labels: int = 0
+    unmapped_class_ids: int = 0
     nonfinite_points: int = 0
     completions_run: int = 0      # vehicles the network completed
     completions_reused: int = 0   # vehicles written from their track's cached completion (--reuse)
@@ -53,6 +54,7 @@ class CompletionSummary:
     def counters(self) -> dict[str, int]:
         """Every counter under the node's diagnostics key."""
         values = {"vehicles_completed": self.vehicles_completed, "ignored_labels": self.ignored_labels,
+                  "unmapped_class_ids": self.unmapped_class_ids,
                   **{f"skipped_{reason}": n for reason, n in sorted(self.skipped.items())},
                   "boxes_wrong_frame": self.boxes_wrong_frame, "boxes_without_header": self.boxes_without_header,
                   "nonfinite_points": self.nonfinite_points, "completions_run": self.completions_run,
@@ -78,66 +80,38 @@ class CompletionSummary:
         self.vehicles_completed += int(stats.completed)
         self.skipped.update(stats.skipped)
         self.ignored_labels += stats.ignored_labels
+        self.unmapped_class_ids += stats.unmapped_class_ids
         self.nonfinite_points += stats.nonfinite_points
         self.completions_run += stats.completions_run
         self.completions_reused += stats.completions_reused
 
 
-def start_fusion(pool: FramePool, publish_fused_points: bool, align: bool = True) -> None:
-    """Give the pool's in-process completer a fresh track accumulator (one per bag); `align` False stores the
-    frames as their boxes place them (`FusionLimits.align` None)."""
-    from gd_completion.fusion import FusionLimits, TrackFusion
-
-    if pool.completer is None:
-        raise BagError("track fusion needs every frame of a bag in order in one process: use --workers 1")
-    pool.completer.fusion = TrackFusion(FusionLimits() if align else FusionLimits(align=None))
-    pool.completer.publish_fused_points = publish_fused_points
-
-
-def start_tracks(pool: FramePool, reuse: bool) -> None:
-    """Give the pool's in-process completer a fresh association of box ids (one per bag) and, with `reuse`, a fresh
-    completion cache (no frame budget: what is written never depends on the machine's load)."""
-    from gd_completion.association import BoxAssociator
-    from gd_completion.reuse import CompletionCache, ReuseSettings
-
-    if pool.completer is None:
-        raise BagError("track fusion and reuse need every frame of a bag in order in one process: use --workers 1")
-    pool.completer.associator = BoxAssociator()
-    pool.completer.cache = CompletionCache(ReuseSettings()) if reuse else None
-
-
-def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = None,
-                 boxes_topic: str | None = None, output_topic: str | None = None, model: str | None = None,
-                 storage: str = "mcap", completer: Any = None, overwrite: bool = False,
-                 progress: bool = True, workers: int = 1, sync_tolerance: float = SYNC_TOLERANCE_S,
-                 skip_unknown_types: bool = False, pool: FramePool | None = None, track_fusion: bool = False,
-                 publish_fused_points: bool = False, fusion_align: bool = True, reuse: bool = False,
-                 **completer_options: Any) -> CompletionSummary:
+def complete_bag(src: str | Path, out: str | Path, settings: CompletionSettings | None = None, *,
+                 cloud_topic: str | None = None, boxes_topic: str | None = None, output_topic: str | None = None,
+                 storage: str = "mcap", completer: Any = None, overwrite: bool = False, progress: bool = True,
+                 workers: int = 1, skip_unknown_types: bool = False, pool: FramePool | None = None
+                 ) -> CompletionSummary:
     """Copy every message of `src` into a new bag `out` and add one completed cloud per cloud message.
 
-    Clouds and boxes are paired as the node pairs them (stamps within `sync_tolerance` seconds); a cloud the
-    node would leave unpaired gets an empty completion. Completions carry the cloud's header and bag timestamp.
-    `completer_options` go to `VehicleCompleter.from_checkpoint` (device, num_threads, min_points, labels,
-    limits: default `OFFLINE_LIMITS`, no time budget, so the output never depends on the machine's load).
-    `workers` > 1 completes frames in that many spawned processes; the output bag is the same as with
-    `workers=1`, message for message and in the same write order. An injected `completer` works only with
-    `workers=1`. A `pool` given is used (and left open) instead of one made from `workers`, `model`,
-    `completer_options` and `completer`, so many bags can share it. The bag's metadata records the package
-    version, the model's SHA-256 and the parameters.
-    `track_fusion`: each tracked vehicle (box id = track id) is completed from its points of all the bag's
-    frames so far (a fresh `fusion.TrackFusion` per bag; frames in order, so in this process only);
-    `publish_fused_points` writes the fused measured points instead of each frame's own; `fusion_align` False
-    turns off the alignment of each frame to its track (box jitter). `reuse`: a tracked vehicle's network
-    completion runs only when due (`reuse.CompletionCache`, default settings, no frame budget), as the node's
-    reuse. With either, the boxes get the track ids of the completer's `track_ids` (completer option; default
-    "message", the command's --track-ids associate) from a fresh association per bag.
+    `settings`: what the node's parameters of the same names do live (default `CompletionSettings.offline()`:
+    no time budget, so the output never depends on the machine's load; no reuse). Clouds and boxes are paired as
+    the node pairs them (stamps within `settings.sync_tolerance`), their classes mapped by the same class preset
+    and map; a cloud the node would leave unpaired gets an empty completion. Completions carry the cloud's header
+    and bag timestamp. `workers` > 1 completes frames in that many spawned processes; the output bag is the same
+    as with `workers=1`, message for message and in the same write order. An injected `completer` works only with
+    `workers=1`. A `pool` given is used (and left open) instead of one made from `workers`, `settings` and
+    `completer`, so many bags can share it (its completer's settings then decide the completions). The bag's
+    metadata records the package version, the model's SHA-256 and the parameters.
+    With `settings.track_fusion` or `settings.reuse`, frames are completed in order in this process and the
+    completer's tracks start afresh for each bag (`VehicleCompleter.reset_tracks`); the boxes get the track ids
+    of `settings.track_ids`.
     A topic of a type with no stored definition and unknown here cannot be copied: BagError, unless
     `skip_unknown_types`, which leaves it out with a warning on stderr (counted in `summary.not_copied`).
     """
     from gd_completion.model.checkpoint import DEFAULT_WEIGHTS
     from gd_completion.pipeline import completion_to_structured
 
-    completer_options.setdefault("limits", OFFLINE_LIMITS)
+    settings = settings or CompletionSettings.offline()
     summary = CompletionSummary()
     start = time.perf_counter()
     with open_bag(src) as reader:
@@ -146,7 +120,8 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
         summary.output_topic = output_topic
         if output_topic in {c.topic for c in reader.connections}:
             raise BagError(f"{src}: output topic {output_topic} exists in the input bag; choose --output-topic")
-        pairing = BagPairing(cloud_topic, boxes_topic, boxes_type, tolerance_s=sync_tolerance, source=str(src))
+        pairing = BagPairing(cloud_topic, boxes_topic, boxes_type, tolerance_s=settings.sync_tolerance,
+                             class_map=settings.classes, source=str(src))
         copied = [c for c in reader.connections if has_definition(c) or not skip_unknown_types]
         for conn in (c for c in reader.connections if c not in copied):
             print(f"gd-completion complete: warning: {src}: skipping {conn.topic}: type {conn.msgtype} is unknown and "
@@ -157,17 +132,18 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
         queue: InOrder[Any] = InOrder(max_in_flight=in_flight)  # memory stays flat on long bags
         waiting: dict[int, Any] = {}  # cloud index -> its slot in the queue, until its pairing is decided
         try:
-            frames = nullcontext(pool) if pool is not None else FramePool(workers, model, completer_options, completer)
+            frames = nullcontext(pool) if pool is not None else FramePool(workers, settings, completer)
             with (frames as pool,
                   atomic_bag_writer(out, storage=storage, overwrite=overwrite) as writer,
                   progress_bar("complete", "frames", total=total, quiet=not progress) as bar):
                 conns = {conn.id: copy_connection(writer, conn, src) for conn in copied}
                 out_conn = add_connection(writer, output_topic, POINTCLOUD2)
-                stamped = track_fusion or reuse
+                stamped = settings.track_fusion or settings.reuse is not None
                 if stamped:
-                    start_tracks(pool, reuse)
-                if track_fusion:
-                    start_fusion(pool, publish_fused_points, fusion_align)
+                    if pool.completer is None:
+                        raise BagError("track fusion and reuse need every frame of a bag in order in one process: "
+                                       "use --workers 1")
+                    pool.completer.reset_tracks()
 
                 def submit(decided: list[tuple[RecordedCloud, Any]]) -> None:
                     """Submit the clouds whose boxes are known (or known to be none)."""
@@ -201,8 +177,9 @@ def complete_bag(src: str | Path, out: str | Path, *, cloud_topic: str | None = 
                 write(queue.rest())
                 parameters = {"completer": pool.run(completer_parameters).result(), "cloud_topic": cloud_topic,
                               "boxes_topic": boxes_topic, "output_topic": output_topic,
-                              "sync_tolerance": sync_tolerance}
-                set_provenance(writer, provenance("complete", model or DEFAULT_WEIGHTS, parameters))
+                              "sync_tolerance": settings.sync_tolerance, "class_preset": settings.class_preset,
+                              "class_map": list(settings.class_map)}
+                set_provenance(writer, provenance("complete", settings.model_path or DEFAULT_WEIGHTS, parameters))
         except BrokenProcessPool as error:
             raise GDCompletionError(f"{src}: a completion worker process died ({error}); no output written "
                                     "(out of memory? try fewer --workers)") from error

@@ -1,6 +1,7 @@
 """A bag's clouds paired with its boxes as the completer node pairs them live (RecordingSync over bag time)."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,12 +30,13 @@ class RecordedCloud:
         return boxes.split_by_frame(self.msg.header.frame_id) if boxes is not None else ([], 0)
 
 
-def box_set_from_message(msg: Any, msgtype: str) -> BoxSet:
-    """The BoxSet (stamp, boxes, per-box frame) of a Detection3DArray or MarkerArray message, as the node reads it."""
+def box_set_from_message(msg: Any, msgtype: str, class_map: Mapping[str, str] | None = None) -> BoxSet:
+    """The BoxSet (stamp, boxes, per-box frame) of a Detection3DArray or MarkerArray message, as the node reads it
+    (detector classes mapped by `class_map`, as the node's class_preset and class_map)."""
     if msgtype == DETECTION3D_ARRAY:
-        return detections_to_boxes(msg)
+        return detections_to_boxes(msg, class_map)
     if msgtype == MARKER_ARRAY:
-        return markers_to_boxes(msg)
+        return markers_to_boxes(msg, class_map)
     raise BagError(f"boxes topic has type {msgtype}; expected {DETECTION3D_ARRAY} or {MARKER_ARRAY}")
 
 
@@ -43,7 +45,9 @@ class BagPairing:
     `boxes_topic` that the node would pair them with (stamps within `tolerance_s`), or with None."""
 
     def __init__(self, cloud_topic: str, boxes_topic: str, boxes_type: str, *,
-                 tolerance_s: float = SYNC_TOLERANCE_S, source: str = "bag") -> None:
+                 tolerance_s: float = SYNC_TOLERANCE_S, class_map: Mapping[str, str] | None = None,
+                 source: str = "bag") -> None:
+        self.class_map = class_map
         self.cloud_topic, self.boxes_topic, self.boxes_type, self.source = cloud_topic, boxes_topic, boxes_type, source
         self.sync: RecordingSync[RecordedCloud, BoxSet] = RecordingSync(int(tolerance_s * 1e9))
         self.boxes_without_header = 0  # empty MarkerArrays: no header to pair by (the node skips them too)
@@ -62,7 +66,8 @@ class BagPairing:
             self._clouds += 1
             return cloud, self.sync.add_cloud(cloud.stamp_ns, cloud, bag_ns)
         if topic == self.boxes_topic:
-            boxes = box_set_from_message(deserialize(raw, self.boxes_type, f"{self.source} {topic}"), self.boxes_type)
+            boxes = box_set_from_message(deserialize(raw, self.boxes_type, f"{self.source} {topic}"), self.boxes_type,
+                                         self.class_map)
             if boxes.stamp_ns is None:
                 self.boxes_without_header += 1
                 return None, []

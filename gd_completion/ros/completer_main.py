@@ -21,6 +21,11 @@ def main(args: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _leave_during_start_up)
     argv = list(sys.argv[1:] if args is None else args)
+    if "--version" in (argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv):
+        from gd_completion import __version__  # the installed metadata only: no torch, no rclpy
+
+        print(f"gd_completion {__version__}")
+        return 0
     from gd_completion.ros.params import print_help, wants_help  # no torch, no rclpy: --help answers at once
 
     if wants_help(argv):

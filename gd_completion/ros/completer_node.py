@@ -25,10 +25,9 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64, Header
 from visualization_msgs.msg import MarkerArray
 
-from gd_completion.association import AssociationSettings
 from gd_completion.box_messages import BoxSet, box_count, detections_to_boxes, markers_to_boxes
 from gd_completion.errors import GDCompletionError, PointCloud2Error
-from gd_completion.fusion import FusionLimits, TrackFusion
+from gd_completion.fusion import TrackFusion
 from gd_completion.kernels import kernels_cached
 from gd_completion.pipeline import VehicleCompleter, completion_to_structured
 from gd_completion.pointcloud2 import read_xyz
@@ -97,18 +96,15 @@ class CompleterNode(Node):
         declare_parameters(self)
         self.params: CompleterParams = read_parameters(self)
         p = self.params
-        self.completer = completer or VehicleCompleter.from_checkpoint(
-            p.model_path or None, device=p.device, num_threads=p.num_threads or (1 if p.reuse else None),
-            labels=p.labels, track_ids=p.track_ids, reuse=p.reuse,
-            association=AssociationSettings(max_distance=p.association_max_distance))
+        s = p.settings
+        # live settings are applied by _apply on top of the checkpoint's preprocessing, kept here
+        self.completer = completer or VehicleCompleter.from_settings(replace(
+            s, num_threads=s.num_threads or (1 if s.reuse else 0), min_points=0, crop_margin=-1.0))
+        if completer is not None and s.track_fusion:
+            completer.fusion = TrackFusion(s.fusion)
+            completer.publish_fused_points = s.publish_fused_points
         self._checkpoint_preprocessing = self.completer.preprocessing
-        if p.track_fusion:
-            self.completer.fusion = TrackFusion(FusionLimits(max_tracks=p.fusion_max_tracks,
-                                                             max_points_per_track=p.fusion_max_points,
-                                                             expiry_s=p.fusion_expiry,
-                                                             **({} if p.fusion_align else {"align": None})))
-            self.completer.publish_fused_points = p.publish_fused_points
-        check_model_sizes(p, self.completer.num_input, self.completer.num_output, p.model_path or "(shipped weights)")
+        check_model_sizes(p, self.completer.num_input, self.completer.num_output, s.model_path or "(shipped weights)")
         if not kernels_cached():
             self.get_logger().info("compiling the CPU kernels (first start after an install without "
                                    "`python -m gd_completion.warmup`: about a minute; cached on disk after)")
@@ -121,7 +117,7 @@ class CompleterNode(Node):
         self._published_times: deque = deque(maxlen=1000)
         self._last_report: dict[str, int] = {}
         self.sync: StampSync[tuple[Header, np.ndarray], BoxSet] = StampSync(
-            int(p.sync_tolerance * 1e9), p.queue_size, max_wait_ns=int(p.sync_max_wait * 1e9))
+            int(s.sync_tolerance * 1e9), p.queue_size, max_wait_ns=int(p.sync_max_wait * 1e9))
         self._apply(p)
         self._slot: LatestSlot[tuple[Pair, float]] = LatestSlot()
         self._stopping = threading.Event()
@@ -139,21 +135,23 @@ class CompleterNode(Node):
         self.get_logger().info(
             f"completer ready: {self.resolve_topic_name(p.cloud_topic)} (PointCloud2) + "
             f"{self.resolve_topic_name(p.boxes_topic)} ({boxes_type_name}) -> "
-            f"{self.resolve_topic_name(p.output_topic)}; model {p.model_path or '(shipped weights)'} on {p.device}, "
-            f"{self.completer.num_input} -> {self.completer.num_output} points, labels {list(p.labels)}")
+            f"{self.resolve_topic_name(p.output_topic)}; model {s.model_path or '(shipped weights)'} on {s.device}, "
+            f"{self.completer.num_input} -> {self.completer.num_output} points, labels {list(s.labels)}")
 
     # -- parameters ------------------------------------------------------------------------------------
 
     def _apply(self, p: CompleterParams) -> None:
         """Put the live parameters into effect (at start and on `ros2 param set`)."""
-        overrides = {k: v for k, v in (("min_points", p.min_points or None),
-                                       ("crop_margin", p.crop_margin if p.crop_margin >= 0 else None)) if v is not None}
+        s = p.settings
+        overrides = {k: v for k, v in (("min_points", s.min_points or None),
+                                       ("crop_margin", s.crop_margin if s.crop_margin >= 0 else None)) if v is not None}
         self.completer.preprocessing = replace(self._checkpoint_preprocessing, **overrides)
-        self.completer.labels = frozenset(p.labels)
-        self.completer.include_input_points = p.include_input_points
-        self.completer.measured_merge = p.measured_merge
-        self.completer.limits = p.limits
-        self.sync.tolerance_ns = int(p.sync_tolerance * 1e9)
+        self.completer.labels = frozenset(s.labels)
+        self.completer.include_input_points = s.include_input_points
+        self.completer.measured_merge = s.measured_merge
+        self.completer.limits = s.limits
+        self._classes = s.classes
+        self.sync.tolerance_ns = int(s.sync_tolerance * 1e9)
         self.sync.max_wait_ns = int(p.sync_max_wait * 1e9)
         self.params = p
 
@@ -224,7 +222,7 @@ class CompleterNode(Node):
                        f"boxes (max_boxes_per_message {self.params.max_boxes_per_message}) before converting it")
             return
         try:
-            boxes = self._to_boxes(msg, self.params.class_map)
+            boxes = self._to_boxes(msg, self._classes)
         except (GDCompletionError, TypeError, ValueError) as exc:
             self._count("errors")
             self._warn("bad_boxes", f"skipping unreadable boxes message on {self.params.boxes_topic}: {exc}")
@@ -321,7 +319,7 @@ class CompleterNode(Node):
         values["drop_stale"] = self._slot.stale
         if self.completer.fusion is not None:
             values.update(self.completer.fusion.counters)
-        if self.params.track_ids == "associate":
+        if self.params.settings.track_ids == "associate":
             values.update(self.completer.associator.counters)
         if self.completer.cache is not None:
             values["reuse_cached_tracks"] = len(self.completer.cache)

@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from gd_completion.settings import add_flags
+
 BOXES_HELP = """boxes (at least one source; they add up):
   --box cx,cy,cz,length,width,height,yaw[,label]   metres and radians in the cloud's frame; label car (default),
                                                    van or truck; instance ids 1, 2, ... in the order given
@@ -19,21 +21,16 @@ completed); 2 bad input (unknown extension, unreadable file, malformed box, no b
 output that exists already (without --overwrite) or cannot be written."""
 
 
-def _count(text: str) -> int:
-    """argparse type: an integer >= 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"invalid count {text!r}: expected an integer >= 0")
-    return value
+# The settings that make sense for one cloud (no tracks, no frame budget).
+CLOUD_SETTINGS = ("model_path", "device", "num_threads", "min_points", "crop_margin", "labels", "include_input_points",
+                  "measured_merge", "max_points_per_vehicle")
 
 
 def _run(args: argparse.Namespace) -> int:
     from gd_completion.atomic import refuse_existing
     from gd_completion.cloud_files import READ_SUFFIXES, WRITE_SUFFIXES, read_xyz, suffix_of, write_points_file
     from gd_completion.errors import BoxError
+    from gd_completion.settings import from_args
     from gd_completion.single_cloud import (
         complete_cloud_report,
         describe,
@@ -60,8 +57,7 @@ def _run(args: argparse.Namespace) -> int:
     if boxes and not any(counts):
         raise BoxError(f"{args.input}: no point of the cloud ({len(points)} points) lies in any of the "
                        f"{len(boxes)} box(es): {', '.join(describe(b) for b in boxes)} (wrong frame or wrong boxes?)")
-    report = complete_cloud_report(points, boxes, model=args.model, threads=args.threads,
-                                   min_points=args.min_points, include_input_points=not args.no_input_points)
+    report = complete_cloud_report(points, boxes, from_args(args))
     write_points_file(args.output, report.points, overwrite=args.overwrite)
     for box, reason in report.skipped:
         print(f"gd-completion complete-cloud: skipped {describe(box)}: {reason}", file=sys.stderr)
@@ -86,12 +82,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--boxes", default=None, metavar="FILE", help="JSON list of boxes (schema below)")
     parser.add_argument("--kitti-label", default=None, metavar="FILE", help="KITTI object label_2 file")
     parser.add_argument("--kitti-calib", default=None, metavar="FILE", help="KITTI object calib file")
-    parser.add_argument("--model", default=None, help="checkpoint (default: the shipped weights)")
-    parser.add_argument("--threads", type=_count, default=0,
-                        help="CPU threads completing vehicles in parallel (default 0: one per core)")
-    parser.add_argument("--min-points", type=_count, default=None,
-                        help="skip vehicles with fewer measured points (default: the checkpoint's, 20)")
-    parser.add_argument("--no-input-points", action="store_true",
-                        help="write the generated points only, not the measured points of each vehicle")
+    add_flags(parser, CLOUD_SETTINGS)
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     parser.set_defaults(func=_run)

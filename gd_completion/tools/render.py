@@ -17,8 +17,8 @@ from gd_completion.errors import BagError
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.pointcloud2 import read_points, read_xyz
 from gd_completion.render import render_birdseye, render_vehicles
+from gd_completion.settings import add_flags, from_args
 from gd_completion.stamp_sync import SYNC_TOLERANCE_S, stamp_to_ns
-from gd_completion.tools.complete import add_sync_tolerance
 
 
 def _paired_frame(reader: Any, pairing: BagPairing, frame: int) -> tuple[RecordedCloud, BoxSet | None] | None:
@@ -101,7 +101,7 @@ def _run(args: argparse.Namespace) -> int:
     paths = render_bag_frame(args.bag, args.output, frame=args.frame, cloud_topic=args.cloud_topic,
                              boxes_topic=args.boxes_topic, completed_topic=args.completed_topic,
                              vehicles_out=args.vehicles, max_vehicles=args.max_vehicles,
-                             sync_tolerance=args.sync_tolerance, overwrite=args.overwrite)
+                             sync_tolerance=from_args(args).sync_tolerance, overwrite=args.overwrite)
     for path in paths:
         print(f"wrote {path}")
     return 0
@@ -116,7 +116,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cloud-topic", default=None)
     parser.add_argument("--boxes-topic", default=None)
     parser.add_argument("--completed-topic", default=None, help="default: <namespace>/completed")
-    add_sync_tolerance(parser)
+    add_flags(parser, ["sync_tolerance"])
     parser.add_argument("--vehicles", default=None, help="also write per-vehicle side/top views to this PNG")
     parser.add_argument("--max-vehicles", type=int, default=12,
                         help="vehicles in the --vehicles image, most measured points first (default 12)")

@@ -1,17 +1,19 @@
-"""`gd-completion complete` over many bags: one output bag per input, resumable, in this process or on Ray."""
+"""Many bags completed (`gd-completion complete` with several inputs): one output bag per input, resumable,
+in this process or on Ray."""
 from __future__ import annotations
 
 import glob
+import logging
 import shutil
-import sys
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from gd_completion.errors import BagError, GDCompletionError
-from gd_completion.limits import OFFLINE_LIMITS
 from gd_completion.progress import progress_bar
+from gd_completion.settings import CompletionSettings
 
 ENGINES = ("local", "ray")
 MANIFEST_SUFFIXES = (".txt", ".list")
@@ -126,29 +128,29 @@ def _outcome(job: BagJob, run: Callable[[], Any]) -> BagOutcome:
     return BagOutcome(job, "done", summary.text(), summary.frames, summary.seconds)
 
 
-def _local(jobs: list[BagJob], workers: int, model: str | None, options: dict[str, Any],
+def _local(jobs: list[BagJob], workers: int, settings: CompletionSettings,
            bag_options: dict[str, Any]) -> Iterator[BagOutcome]:
     """Bags one after the other in this process; their frames on one shared FramePool of `workers` processes."""
     from gd_completion.bags.completion import complete_bag
     from gd_completion.frame_pool import FramePool
 
-    with FramePool(workers, model, options) as pool:
+    with FramePool(workers, settings) as pool:
         for job in jobs:
-            yield _outcome(job, lambda job=job: complete_bag(job.src, job.out, model=model, pool=pool,
-                                                             progress=False, **bag_options))
+            yield _outcome(job, partial(complete_bag, job.src, job.out, settings, pool=pool, progress=False,
+                                        **bag_options))
 
 
 class BagWorker:
     """A Ray actor: one completer (loaded once), completing whole bags with it."""
 
-    def __init__(self, model: str | None, options: dict[str, Any]) -> None:
-        self.model = model
+    def __init__(self, settings: CompletionSettings) -> None:
+        self.settings = settings
         self.error: GDCompletionError | None = None
         self.completer = None
         try:
             from gd_completion.pipeline import VehicleCompleter
 
-            self.completer = VehicleCompleter.from_checkpoint(model or None, **options)
+            self.completer = VehicleCompleter.from_settings(settings)
         except GDCompletionError as error:
             self.error = error
 
@@ -157,7 +159,7 @@ class BagWorker:
 
         if self.error is not None:
             return BagOutcome(job, "failed", str(self.error))
-        return _outcome(job, lambda: complete_bag(job.src, job.out, model=self.model, completer=self.completer,
+        return _outcome(job, lambda: complete_bag(job.src, job.out, self.settings, completer=self.completer,
                                                   progress=False, **bag_options))
 
 
@@ -166,25 +168,24 @@ def ray_resources(device: str, threads: int) -> dict[str, float]:
     return {"num_cpus": max(threads, 1), "num_gpus": 1 if device.startswith("cuda") else 0}
 
 
-def _ray(jobs: list[BagJob], workers: int, model: str | None, options: dict[str, Any],
-         bag_options: dict[str, Any], address: str | None) -> Iterator[BagOutcome]:
+def _ray(jobs: list[BagJob], workers: int, settings: CompletionSettings, bag_options: dict[str, Any],
+         address: str | None) -> Iterator[BagOutcome]:
     """One Ray actor per worker (model loaded once each), one actor call per bag; results as they finish."""
     import ray
 
     started = not ray.is_initialized()
     if started:
         if address:
-            ray.init(address=address, logging_level="WARNING")
+            ray.init(address=address, logging_level=logging.WARNING)
         else:
-            ray.init(num_cpus=workers, include_dashboard=False, logging_level="WARNING")
+            ray.init(num_cpus=workers, include_dashboard=False, logging_level=logging.WARNING)
     try:
-        threads = options.get("num_threads") or 1
-        device = str(options.get("device", "cpu"))
-        resources = ray_resources(device, threads)
+        threads = settings.num_threads or 1
+        resources = ray_resources(settings.device, threads)
         # Ray gives each actor its GPU as CUDA_VISIBLE_DEVICES, so inside the actor it is always cuda (device 0).
-        options = {**options, "num_threads": threads, **({"device": "cuda"} if resources["num_gpus"] else {})}
-        actor = ray.remote(**resources)(BagWorker)
-        pool = [actor.remote(model, options) for _ in range(min(workers, len(jobs)))]
+        settings = replace(settings, num_threads=threads, device="cuda" if resources["num_gpus"] else settings.device)
+        actor: Any = ray.remote(num_cpus=resources["num_cpus"], num_gpus=resources["num_gpus"])(BagWorker)
+        pool = [actor.remote(settings) for _ in range(min(workers, len(jobs)))]
         pending: dict[Any, tuple[Any, BagJob]] = {}
         queue = list(jobs)
         for worker in pool:
@@ -198,7 +199,7 @@ def _ray(jobs: list[BagJob], workers: int, model: str | None, options: dict[str,
                 outcome = ray.get(ref)
             except ray.exceptions.RayError as error:  # the worker died (out of memory, killed): this bag failed
                 outcome = BagOutcome(job, "failed", f"{job.src}: Ray worker failed: {error}")
-                worker = actor.remote(model, options)
+                worker = actor.remote(settings)
             yield outcome
             if queue:
                 job = queue.pop(0)
@@ -208,20 +209,20 @@ def _ray(jobs: list[BagJob], workers: int, model: str | None, options: dict[str,
             ray.shutdown()
 
 
-def complete_many(jobs: list[BagJob], *, engine: str = "local", workers: int = 1, model: str | None = None,
-                  address: str | None = None, overwrite: bool = False, progress: bool = True,
-                  report: Callable[[BagOutcome], None] | None = None, completer_options: dict[str, Any] | None = None,
-                  **bag_options: Any) -> list[BagOutcome]:
+def complete_many(jobs: list[BagJob], settings: CompletionSettings | None = None, *, engine: str = "local",
+                  workers: int = 1, address: str | None = None, overwrite: bool = False, progress: bool = True,
+                  report: Callable[[BagOutcome], None] | None = None, **bag_options: Any) -> list[BagOutcome]:
     """Complete every job's bag; bags whose output exists are skipped (unless `overwrite`), so a rerun resumes.
 
     A bag that fails is reported (`failed`, with the reason) and the others go on. `engine` 'local' runs the bags
     in this process, frames on `workers` processes; 'ray' runs one bag per Ray actor call on `workers` actors
     (a local Ray with `workers` CPUs, or the cluster at `address`). Output bags are the same for both engines.
-    `report(outcome)` is called as each bag ends; outcomes come back in the order of `jobs`.
+    `report(outcome)` is called as each bag ends; outcomes come back in the order of `jobs`. `settings`: as
+    `complete_bag`'s (default `CompletionSettings.offline()`); `bag_options`: its other keyword arguments.
     """
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
-    options = {"limits": OFFLINE_LIMITS, **(completer_options or {})}
+    settings = settings or CompletionSettings.offline()
     outcomes: dict[BagJob, BagOutcome] = {}
     todo = []
     for job in jobs:
@@ -234,8 +235,8 @@ def complete_many(jobs: list[BagJob], *, engine: str = "local", workers: int = 1
     with progress_bar("complete", "bags", total=len(jobs), quiet=not progress) as bar:
         bar.update(len(jobs) - len(todo))
         if todo:
-            run = (_ray(todo, workers, model, options, bag_options, address) if engine == "ray"
-                   else _local(todo, workers, model, options, bag_options))
+            run = (_ray(todo, workers, settings, bag_options, address) if engine == "ray"
+                   else _local(todo, workers, settings, bag_options))
             for outcome in run:
                 outcomes[outcome.job] = outcome
                 if report is not None:
@@ -252,7 +253,3 @@ def summary_text(outcomes: list[BagOutcome], seconds: float) -> str:
     return (f"{len(outcomes)} bags: {counts['done']} completed, {counts['skipped']} skipped (output exists), "
             f"{counts['failed']} failed; {frames} frames ({rate:.2f} frames/s, {seconds:.1f} s)")
 
-
-def print_line(outcome: BagOutcome) -> None:
-    """Per-bag line: done and skipped on stdout, failed on stderr."""
-    print(outcome.line(), file=sys.stderr if outcome.status == "failed" else sys.stdout, flush=True)
