@@ -8,7 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from gd_completion.box_messages import INT32_MAX, BoxSet, _box, map_label
+from gd_completion.box_messages import INT32_MAX, BoxSet, _box
+from gd_completion.class_maps import map_label
 from gd_completion.stamp_sync import stamp_to_ns
 
 # autoware_perception_msgs/msg/ObjectClassification label constants -> our class names (kept here so the pure

@@ -3,11 +3,11 @@ from __future__ import annotations
 
 import math
 import zlib
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from gd_completion.errors import BoxError
+from gd_completion.class_maps import map_label
 from gd_completion.geometry import Box3D
 from gd_completion.rotations import yaw_from_quaternion
 from gd_completion.stamp_sync import stamp_to_ns
@@ -31,24 +31,6 @@ class BoxSet:
         """Boxes given in `frame_id`, and how many were in another frame (no tf here: those are skipped)."""
         kept = [b for b, f in zip(self.boxes, self.frame_ids) if f == frame_id]
         return kept, len(self.boxes) - len(kept)
-
-
-def parse_class_map(entries: Iterable[str]) -> dict[str, str]:
-    """["1:car", "Car:car", "Pedestrian:ignore"] -> {"1": "car", "Car": "car", "Pedestrian": "ignore"}."""
-    table: dict[str, str] = {}
-    for entry in entries:
-        key, sep, label = str(entry).rpartition(":")
-        key, label = key.strip(), label.strip().lower()
-        if not sep or not key or not label:
-            raise BoxError(f"class_map entry {entry!r} is not of the form 'class_id:label'")
-        table[key] = label
-    return table
-
-
-def map_label(raw: str, class_map: Mapping[str, str]) -> str:
-    """Detector class name/id -> our label: the class_map entry, else the raw name in lower case."""
-    raw = str(raw).strip()
-    return class_map.get(raw, raw.lower())
 
 
 def _box(pose: Any, size: Any, label: str, instance_id: int) -> Box3D:

@@ -63,13 +63,18 @@ def is_numeric_id(raw: str) -> bool:
     return text.isdigit()
 
 
-UNMAPPED = "unmapped"   # the label of a box whose numeric class id no map names
+UNMAPPED = "unmapped:"   # label prefix of a box whose numeric class id no map names ("unmapped:3")
 
 
 def map_label(raw: str, class_map: Mapping[str, str]) -> str:
     """Detector class name/id -> our label: the class_map entry; else a name in lower case; else (a numeric id
-    nothing maps) `UNMAPPED`, which no vehicle label matches."""
+    nothing maps) `UNMAPPED` + the id, which no vehicle label matches."""
     raw = str(raw).strip()
     if raw in class_map:
         return class_map[raw]
-    return UNMAPPED if is_numeric_id(raw) else raw.lower()
+    return f"{UNMAPPED}{raw}" if is_numeric_id(raw) else raw.lower()
+
+
+def unmapped_ids(labels: Iterable[str]) -> list[str]:
+    """The numeric class ids among box labels that no map named, sorted, each once."""
+    return sorted({label.removeprefix(UNMAPPED) for label in labels if label.startswith(UNMAPPED)})

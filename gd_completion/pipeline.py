@@ -218,7 +218,7 @@ class VehicleCompleter:
             points = points[finite]
         usable: list[Box3D] = []
         for box in boxes:
-            if box.label == UNMAPPED:
+            if box.label.startswith(UNMAPPED):
                 stats.unmapped_class_ids += 1
             elif box.label not in self.labels:
                 stats.ignored_labels += 1

@@ -76,6 +76,13 @@ SETTINGS: dict[str, Setting] = {
                                "is skipped and counted (unmapped_class_ids), never guessed.", live=True),
     "sync_tolerance": Setting(SYNC_TOLERANCE_S, "Largest stamp difference (s) between a cloud and its boxes.",
                               0.0, 10.0, live=True),
+    "use_tf": Setting(True, "Boxes in another frame than the cloud's are moved into the cloud's frame at the cloud's "
+                            "stamp with the transforms of /tf and /tf_static (offline: the bag's); boxes whose "
+                            "transform is unknown are skipped (boxes_no_transform). false: such boxes are skipped "
+                            "(boxes_wrong_frame)."),
+    "transform_tolerance": Setting(0.05, "Seconds a stamp may lie outside the transforms received for it; within, the "
+                                         "nearest transform is used (no extrapolation), beyond, the boxes are skipped.",
+                                   0.0, 10.0),
     "include_input_points": Setting(True, "Also publish the measured points of each completed vehicle (generated=0); "
                                           "without them, a merged completion's own measured points still carry "
                                           "generated=0.", live=True, flag="--no-input-points"),
@@ -167,6 +174,8 @@ class CompletionSettings:
     class_preset: str = DEFAULT_PRESET
     class_map: tuple[str, ...] = ()   # the user's entries, as given
     sync_tolerance: float = SYNC_TOLERANCE_S
+    use_tf: bool = True
+    transform_tolerance: float = 0.05
     include_input_points: bool = True
     measured_merge: bool = True
     limits: FrameLimits = field(default_factory=FrameLimits)
@@ -212,7 +221,9 @@ class CompletionSettings:
                    min_points=int(v["min_points"]), crop_margin=float(v["crop_margin"]), labels=labels,
                    class_preset=str(v["class_preset"]),
                    class_map=tuple(str(e) for e in v["class_map"] if str(e).strip()),
-                   sync_tolerance=float(v["sync_tolerance"]), include_input_points=bool(v["include_input_points"]),
+                   sync_tolerance=float(v["sync_tolerance"]), use_tf=bool(v["use_tf"]),
+                   transform_tolerance=float(v["transform_tolerance"]),
+                   include_input_points=bool(v["include_input_points"]),
                    measured_merge=bool(v["measured_merge"]), limits=limits, track_fusion=bool(v["track_fusion"]),
                    publish_fused_points=bool(v["publish_fused_points"]), fusion=fusion, track_ids=str(v["track_ids"]),
                    association=AssociationSettings(max_distance=float(v["association_max_distance"])), reuse=reuse)

@@ -22,7 +22,8 @@ from gd_completion.autoware_messages import (
     uuid_instance_id,
 )
 from gd_completion.bags.typestore import TF_MESSAGE, typestore
-from gd_completion.box_messages import _instance_id, box_count, parse_class_map
+from gd_completion.box_messages import _instance_id, box_count
+from gd_completion.class_maps import parse_class_map
 
 STAMP = Time(sec=1_700_000_000, nanosec=250_000_000)
 STAMP_NS = 1_700_000_000_250_000_000

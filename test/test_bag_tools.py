@@ -288,10 +288,13 @@ def test_unknown_type_without_definition(model_path: str, tmp_path: Path, capsys
 
 def test_boxes_in_another_frame_are_skipped_and_counted(model_path: str, tmp_path: Path) -> None:
     src = tmp_path / "in"
-    _write_bag(src, with_boxes=True, boxes_frame="map")   # the clouds are in "lidar"; no tf offline
+    _write_bag(src, with_boxes=True, boxes_frame="map")   # the clouds are in "lidar"; the bag has no /tf
     summary = complete_bag(src, tmp_path / "out", CompletionSettings.offline(model_path=model_path), progress=False)
-    assert summary.frames == 2 and summary.boxes_wrong_frame == 2 and dict(summary.skipped) == {}
-    assert summary.counters()["boxes_wrong_frame"] == 2 and "boxes_wrong_frame 2" in summary.text()
+    assert summary.frames == 2 and summary.boxes_no_transform == 2 and dict(summary.skipped) == {}
+    assert summary.counters()["boxes_no_transform"] == 2 and "boxes_no_transform 2" in summary.text()
+    off = complete_bag(src, tmp_path / "off", CompletionSettings.offline(model_path=model_path, use_tf=False),
+                       progress=False)   # without tf the same boxes count as in the wrong frame
+    assert off.boxes_wrong_frame == 2 and off.boxes_no_transform == 0
 
 
 DETECTOR_DELAY_NS = 3_000_000  # the detector stamps its boxes 3 ms after the cloud (and they are recorded later)

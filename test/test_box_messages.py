@@ -9,7 +9,8 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose, Quaternion
 from visualization_msgs.msg import Marker, MarkerArray
 
-from gd_completion.box_messages import detections_to_boxes, map_label, markers_to_boxes, parse_class_map
+from gd_completion.box_messages import detections_to_boxes, markers_to_boxes
+from gd_completion.class_maps import map_label, parse_class_map
 from gd_completion.errors import BoxError
 from gd_completion.rotations import yaw_from_quaternion
 

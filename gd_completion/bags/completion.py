@@ -24,6 +24,7 @@ from gd_completion.pointcloud2 import read_xyz, write_points
 from gd_completion.progress import progress_bar
 from gd_completion.settings import CompletionSettings
 from gd_completion.stamp_sync import SyncCounters
+from gd_completion.transforms import TransformBuffer
 
 
 @dataclass
@@ -39,8 +40,10 @@ class CompletionSummary:
     nonfinite_points: int = 0
     completions_run: int = 0      # vehicles the network completed
     completions_reused: int = 0   # vehicles written from their track's cached completion (--reuse)
-    boxes_wrong_frame: int = 0
+    boxes_wrong_frame: int = 0    # boxes in another frame than the cloud's, use_tf off
+    boxes_no_transform: int = 0   # boxes in a frame with no transform into the cloud's at its stamp
     boxes_without_header: int = 0
+    unsupported_shapes: int = 0   # Autoware objects of boxes messages whose shape is no box (not converted)
     sync: SyncCounters = field(default_factory=SyncCounters)
     seconds: float = 0.0
     output_topic: str = ""
@@ -56,7 +59,9 @@ class CompletionSummary:
         values = {"vehicles_completed": self.vehicles_completed, "ignored_labels": self.ignored_labels,
                   "unmapped_class_ids": self.unmapped_class_ids,
                   **{f"skipped_{reason}": n for reason, n in sorted(self.skipped.items())},
-                  "boxes_wrong_frame": self.boxes_wrong_frame, "boxes_without_header": self.boxes_without_header,
+                  "boxes_wrong_frame": self.boxes_wrong_frame, "boxes_no_transform": self.boxes_no_transform,
+                  "boxes_without_header": self.boxes_without_header,
+                  "skipped_unsupported_shape": self.unsupported_shapes,
                   "nonfinite_points": self.nonfinite_points, "completions_run": self.completions_run,
                   "completions_reused": self.completions_reused}
         for key, n in self.sync.as_dict().items():
@@ -120,8 +125,9 @@ def complete_bag(src: str | Path, out: str | Path, settings: CompletionSettings 
         summary.output_topic = output_topic
         if output_topic in {c.topic for c in reader.connections}:
             raise BagError(f"{src}: output topic {output_topic} exists in the input bag; choose --output-topic")
+        transforms = TransformBuffer(extrapolation_s=settings.transform_tolerance) if settings.use_tf else None
         pairing = BagPairing(cloud_topic, boxes_topic, boxes_type, tolerance_s=settings.sync_tolerance,
-                             class_map=settings.classes, source=str(src))
+                             class_map=settings.classes, transforms=transforms, source=str(src))
         copied = [c for c in reader.connections if has_definition(c) or not skip_unknown_types]
         for conn in (c for c in reader.connections if c not in copied):
             print(f"gd-completion complete: warning: {src}: skipping {conn.topic}: type {conn.msgtype} is unknown and "
@@ -148,8 +154,11 @@ def complete_bag(src: str | Path, out: str | Path, settings: CompletionSettings 
                 def submit(decided: list[tuple[RecordedCloud, Any]]) -> None:
                     """Submit the clouds whose boxes are known (or known to be none)."""
                     for cloud, box_set in decided:
-                        boxes, wrong_frame = cloud.boxes_in_frame(box_set)
-                        summary.boxes_wrong_frame += wrong_frame
+                        boxes, missing = cloud.boxes_in_frame(box_set, transforms)
+                        if transforms is None:
+                            summary.boxes_wrong_frame += missing
+                        else:
+                            summary.boxes_no_transform += missing
                         queue.start(waiting.pop(cloud.index), pool.submit(read_xyz(cloud.msg), boxes,
                                                                           cloud.stamp_ns if stamped else None))
 
@@ -185,5 +194,6 @@ def complete_bag(src: str | Path, out: str | Path, settings: CompletionSettings 
                                     "(out of memory? try fewer --workers)") from error
     summary.sync = pairing.counters
     summary.boxes_without_header = pairing.boxes_without_header
+    summary.unsupported_shapes = pairing.unsupported_shapes
     summary.seconds = time.perf_counter() - start
     return summary

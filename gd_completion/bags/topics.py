@@ -3,11 +3,23 @@ from __future__ import annotations
 
 from typing import Any
 
-from gd_completion.bags.typestore import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2
+from gd_completion.bags.typestore import (
+    AUTOWARE_DETECTED_OBJECTS,
+    AUTOWARE_TRACKED_OBJECTS,
+    DETECTION3D_ARRAY,
+    MARKER_ARRAY,
+    POINTCLOUD2,
+)
 from gd_completion.errors import BagError
 
 DEFAULT_CLOUD_TOPICS = ("/kitti/points", "/pandar64/points", "/points")
-BOXES_TYPES = (DETECTION3D_ARRAY, MARKER_ARRAY)
+# The boxes types `complete` and `render` read, in the order a boxes topic is picked when none is given.
+BOXES_TYPES = (DETECTION3D_ARRAY, AUTOWARE_DETECTED_OBJECTS, AUTOWARE_TRACKED_OBJECTS, MARKER_ARRAY)
+
+
+def _one_of() -> str:
+    """'A, B, C or D' of BOXES_TYPES."""
+    return ", ".join(BOXES_TYPES[:-1]) + f" or {BOXES_TYPES[-1]}"
 
 
 def default_output_topic(cloud_topic: str) -> str:
@@ -33,15 +45,12 @@ def pick_topics(reader: Any, cloud_topic: str | None, boxes_topic: str | None) -
     elif types[cloud_topic] != POINTCLOUD2:
         raise BagError(f"{reader.path}: {cloud_topic} has type {types[cloud_topic]}, not {POINTCLOUD2}")
     if boxes_topic is None:
-        candidates = sorted(t for t, ty in types.items() if ty == DETECTION3D_ARRAY) + sorted(
-            t for t, ty in types.items() if ty == MARKER_ARRAY)
+        candidates = [t for kind in BOXES_TYPES for t in sorted(t for t, ty in types.items() if ty == kind)]
         if not candidates:
-            raise BagError(f"{reader.path}: clouds without boxes: no {DETECTION3D_ARRAY} or "
-                           f"{MARKER_ARRAY} topic (give --boxes-topic)")
+            raise BagError(f"{reader.path}: clouds without boxes: no {_one_of()} topic (give --boxes-topic)")
         boxes_topic = candidates[0]
     elif boxes_topic not in types:
         raise BagError(f"{reader.path}: no topic {boxes_topic}")
     if types[boxes_topic] not in BOXES_TYPES:
-        raise BagError(f"{reader.path}: {boxes_topic} has type {types[boxes_topic]}; expected "
-                       f"{DETECTION3D_ARRAY} or {MARKER_ARRAY}")
+        raise BagError(f"{reader.path}: {boxes_topic} has type {types[boxes_topic]}; expected {_one_of()}")
     return cloud_topic, boxes_topic, types[boxes_topic]

@@ -15,6 +15,8 @@ MSG_DIR = Path(__file__).resolve().parents[1] / "msg"
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 DETECTION3D_ARRAY = "vision_msgs/msg/Detection3DArray"
+AUTOWARE_DETECTED_OBJECTS = "autoware_perception_msgs/msg/DetectedObjects"
+AUTOWARE_TRACKED_OBJECTS = "autoware_perception_msgs/msg/TrackedObjects"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
 # pandar_msgs as published by the Hesai drivers (same text as the driver's msg/ folder).
@@ -47,7 +49,8 @@ def typestore() -> Typestore:
 def require_type(msgtype: str) -> None:
     """Raise BagError when `msgtype` is not registered (e.g. vision_msgs .msg files missing)."""
     if msgtype not in typestore().types:
-        hint = f" (expected its definition under {MSG_DIR})" if msgtype.startswith("vision_msgs/") else ""
+        shipped = ("vision_msgs/", "autoware_perception_msgs/")
+        hint = f" (expected its definition under {MSG_DIR})" if msgtype.startswith(shipped) else ""
         raise BagError(f"message type {msgtype} is not registered{hint}")
 
 

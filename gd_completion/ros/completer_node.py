@@ -1,6 +1,7 @@
 """ROS 2 node `completer`: pairs clouds with 3D boxes by stamp and publishes completed vehicle clouds."""
 from __future__ import annotations
 
+import importlib
 import math
 import os
 import signal
@@ -19,13 +20,15 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64, Header
 from visualization_msgs.msg import MarkerArray
 
+from gd_completion.autoware_messages import detected_objects_to_boxes, tracked_objects_to_boxes
 from gd_completion.box_messages import BoxSet, box_count, detections_to_boxes, markers_to_boxes
+from gd_completion.class_maps import unmapped_ids
 from gd_completion.errors import GDCompletionError, PointCloud2Error
 from gd_completion.fusion import TrackFusion
 from gd_completion.kernels import kernels_cached
@@ -40,10 +43,13 @@ from gd_completion.ros.params import (
     declare_parameters,
     params_file_problems,
     read_parameters,
+    track_ids_problems,
     unknown_parameters,
     validate,
 )
+from gd_completion.settings import CompletionSettings
 from gd_completion.stamp_sync import LatestSlot, Pair, StampSync, stamp_to_ns
+from gd_completion.transforms import TransformBuffer, boxes_in_frame
 
 NODE_NAME = "completer"
 WARN_PERIOD_S = 60.0        # a warning's cause is logged at most once per minute; counts are in /diagnostics
@@ -56,18 +62,36 @@ ROUTINE_CAUSES = frozenset({"too_few_points", "superseded", "no_subscribers", "d
 # Counters always present in the diagnostics, so a consumer can rely on the keys.
 COUNTER_KEYS = (
     "clouds_received", "boxes_received", "frames_published", "vehicles_completed", "ignored_labels",
-    "skipped_degenerate_box", "skipped_too_few_points", "boxes_wrong_frame", "boxes_without_header",
+    "unmapped_class_ids", "skipped_degenerate_box", "skipped_too_few_points", "boxes_wrong_frame",
+    "boxes_no_transform", "boxes_without_header",
     "skipped_implausible_box", "skipped_duplicate_box", "skipped_too_many_boxes", "skipped_too_many_points",
     "skipped_output_limit", "skipped_time_budget",
     "bad_cloud", "nonfinite_points", "drop_superseded", "frames_without_subscribers", "errors",
     "completions_run", "completions_reused", "completions_deferred", "skipped_deferred",
-    "skipped_box_message_too_large",
+    "skipped_box_message_too_large", "skipped_unsupported_shape",
 )
 PROCESSING_TIME_TOPIC = "~/debug/processing_time_ms"
 
 
+# boxes_type -> (autoware_perception_msgs message, its converter)
+AUTOWARE_BOXES_TYPES: dict[str, tuple[str, Callable[..., BoxSet]]] = {
+    "autoware_detected": ("DetectedObjects", detected_objects_to_boxes),
+    "autoware_tracked": ("TrackedObjects", tracked_objects_to_boxes),
+}
+
+
 def resolve_boxes_type(boxes_type: str) -> tuple[type, Callable[..., BoxSet], str]:
     """(message class, converter to BoxSet, type name) for the `boxes_type` parameter."""
+    if boxes_type in AUTOWARE_BOXES_TYPES:
+        name, convert = AUTOWARE_BOXES_TYPES[boxes_type]
+        try:
+            msgs = importlib.import_module("autoware_perception_msgs.msg")
+        except ImportError as exc:
+            raise ParameterError(
+                f"parameter boxes_type={boxes_type!r} but autoware_perception_msgs is not importable ({exc}); "
+                "install ros-<distro>-autoware-perception-msgs (or build it with scripts/build_interfaces.sh and "
+                "source its install prefix)") from exc
+        return getattr(msgs, name), convert, f"autoware_perception_msgs/msg/{name}"
     if boxes_type in ("auto", "detection3d"):
         try:
             from vision_msgs.msg import Detection3DArray
@@ -110,6 +134,8 @@ class CompleterNode(Node):
                                    "`python -m gd_completion.warmup`: about a minute; cached on disk after)")
         self.completer.warm_up()
         boxes_cls, self._to_boxes, boxes_type_name = resolve_boxes_type(p.boxes_type)
+        for problem in track_ids_problems(p):
+            self.get_logger().warning(problem)
 
         self._lock = threading.Lock()  # guards counts, latencies and published times (worker vs. timer)
         self.counts: Counter = Counter({k: 0 for k in COUNTER_KEYS})
@@ -126,6 +152,7 @@ class CompleterNode(Node):
         self._output_pub = self.create_publisher(PointCloud2, p.output_topic, QoSProfile(depth=5))
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         self._time_pub = self.create_publisher(Float64, PROCESSING_TIME_TOPIC, QoSProfile(depth=10))
+        self._tf = self._subscribe_tf(p.settings)
         self._worker = threading.Thread(target=self._work, name="completer-worker", daemon=True)
         self._worker.start()
         self.create_subscription(PointCloud2, p.cloud_topic, self._on_cloud, qos_profile_sensor_data)
@@ -137,6 +164,26 @@ class CompleterNode(Node):
             f"{self.resolve_topic_name(p.boxes_topic)} ({boxes_type_name}) -> "
             f"{self.resolve_topic_name(p.output_topic)}; model {s.model_path or '(shipped weights)'} on {s.device}, "
             f"{self.completer.num_input} -> {self.completer.num_output} points, labels {list(s.labels)}")
+
+    def _subscribe_tf(self, s: CompletionSettings) -> TransformBuffer | None:
+        """A transform buffer fed by /tf and /tf_static (tf2's topics and QoS), or None when use_tf is off or
+        tf2_msgs is not importable (then boxes in another frame than the cloud's are skipped)."""
+        if not s.use_tf:
+            return None
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError as exc:
+            self.get_logger().warning(f"use_tf: tf2_msgs is not importable ({exc}); boxes in another frame than the "
+                                      "cloud's are skipped (install ros-jazzy-tf2-msgs, or build it with "
+                                      "scripts/build_interfaces.sh)")
+            return None
+        buffer = TransformBuffer(extrapolation_s=s.transform_tolerance)
+        static = QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                            reliability=ReliabilityPolicy.RELIABLE)
+        self.create_subscription(TFMessage, "/tf", lambda msg: buffer.add_message(msg, static=False),
+                                 QoSProfile(depth=100))
+        self.create_subscription(TFMessage, "/tf_static", lambda msg: buffer.add_message(msg, static=True), static)
+        return buffer
 
     # -- parameters ------------------------------------------------------------------------------------
 
@@ -227,6 +274,10 @@ class CompleterNode(Node):
             self._count("errors")
             self._warn("bad_boxes", f"skipping unreadable boxes message on {self.params.boxes_topic}: {exc}")
             return
+        if boxes.unsupported_shapes:
+            self._count("skipped_unsupported_shape", boxes.unsupported_shapes)
+            self._warn("unsupported_shape", f"skipped {boxes.unsupported_shapes} object(s) on "
+                       f"{self.params.boxes_topic} whose shape is no BOUNDING_BOX (CYLINDER, POLYGON)")
         if boxes.stamp_ns is None:
             self._count("boxes_without_header")
             self._warn("boxes_without_header",
@@ -269,19 +320,30 @@ class CompleterNode(Node):
         started = time.perf_counter()
         header, points = pair.cloud
         frame_id = header.frame_id
-        boxes, wrong_frame = pair.boxes.split_by_frame(frame_id)
-        if wrong_frame:
-            self._count("boxes_wrong_frame", wrong_frame)
-            self._warn("wrong_frame", f"skipping {wrong_frame} box(es) not in the cloud's frame '{frame_id}' "
-                                      "(no tf transform here)")
-        completion = self.completer.complete_frame(points, boxes, cancel=self._stopping,
-                                                   stamp_ns=stamp_to_ns(header.stamp))
+        stamp_ns = stamp_to_ns(header.stamp)
+        problems: list[str] = []
+        boxes, missing = boxes_in_frame(pair.boxes, frame_id, stamp_ns, self._tf, problems)
+        if missing and self._tf is None:
+            self._count("boxes_wrong_frame", missing)
+            self._warn("wrong_frame", f"skipping {missing} box(es) not in the cloud's frame '{frame_id}' "
+                                      "(use_tf is off or tf2_msgs is not importable)")
+        elif missing:
+            self._count("boxes_no_transform", missing)
+            self._warn("no_transform", f"skipping {missing} box(es) of a frame without a transform into "
+                                       f"'{frame_id}': {problems[0]}")
+        completion = self.completer.complete_frame(points, boxes, cancel=self._stopping, stamp_ns=stamp_ns)
         stats = completion.stats
         if stats.nonfinite_points:
             self._warn("nonfinite", f"dropped {stats.nonfinite_points} non-finite point(s) of a cloud on "
                                     f"{self.params.cloud_topic}")
         for reason, n in stats.skipped.items():
             self._warn(reason, f"skipped vehicles: {n} {reason}")
+        if stats.unmapped_class_ids:
+            ids = ", ".join(unmapped_ids(b.label for b in pair.boxes.boxes))
+            self._warn("unmapped_class_ids", f"skipped {stats.unmapped_class_ids} box(es) with numeric class ids that "
+                       f"class_preset '{self.params.settings.class_preset}' and class_map do not name (ids: {ids}); "
+                       "numeric ids mean different classes in different detectors: set class_preset (e.g. "
+                       "openpcdet_kitti) or class_map (e.g. ['1:car'])")
         msg = structured_to_msg(completion_to_structured(completion), header)
         if self._stopping.is_set():
             return
@@ -292,6 +354,7 @@ class CompleterNode(Node):
             self.counts["frames_published"] += 1
             self.counts["vehicles_completed"] += stats.completed
             self.counts["ignored_labels"] += stats.ignored_labels
+            self.counts["unmapped_class_ids"] += stats.unmapped_class_ids
             self.counts["nonfinite_points"] += stats.nonfinite_points
             self.counts["completions_run"] += stats.completions_run
             self.counts["completions_reused"] += stats.completions_reused

@@ -13,7 +13,7 @@ from gd_completion.errors import GDCompletionError
 from gd_completion.settings import SETTINGS, CompletionSettings, Setting, SettingsError
 from gd_completion.stamp_sync import FRESH_FRAME_AGE_S, SYNC_MAX_WAIT_S, SYNC_QUEUE_SIZE
 
-BOXES_TYPES = ("auto", "detection3d", "marker")
+BOXES_TYPES = ("auto", "detection3d", "marker", "autoware_detected", "autoware_tracked")
 
 
 class ParameterError(GDCompletionError):
@@ -41,12 +41,19 @@ class CompleterParams:
 # The node's own parameters (the completion's are `settings.SETTINGS`).
 NODE_SETTINGS: dict[str, Setting] = {
     "cloud_topic": Setting("points", "Input sensor_msgs/PointCloud2 topic (sensor-data QoS)."),
-    "boxes_topic": Setting("detections", "Input 3D boxes topic (vision_msgs/Detection3DArray or "
-                                         "visualization_msgs/MarkerArray)."),
+    "boxes_topic": Setting("detections", "Input 3D boxes topic (vision_msgs/Detection3DArray, "
+                                         "visualization_msgs/MarkerArray, or autoware_perception_msgs/DetectedObjects "
+                                         "or TrackedObjects: see boxes_type)."),
     "output_topic": Setting("completed_vehicles", "Output PointCloud2: x, y, z, instance_id, label, generated; "
                                                   "input header."),
     "boxes_type": Setting("auto", "Boxes message type: auto (Detection3DArray when vision_msgs is installed, else "
-                                  "MarkerArray), detection3d or marker.", choices=BOXES_TYPES),
+                                  "MarkerArray), detection3d, marker, autoware_detected "
+                                  "(autoware_perception_msgs/DetectedObjects: instance id = index in the array) or "
+                                  "autoware_tracked (TrackedObjects: instance id from the object's UUID, the same in "
+                                  "every frame; set track_ids:=message to key fusion and reuse by it). Only "
+                                  "BOUNDING_BOX shapes are boxes; other shapes are skipped "
+                                  "(skipped_unsupported_shape).",
+                          choices=BOXES_TYPES),
     "num_input_points": Setting(0, "Points per vehicle fed to the network; must match the checkpoint (0 = take it "
                                    "from the checkpoint).", 0, 65536),
     "num_output_points": Setting(0, "Points the network generates per vehicle; must match the checkpoint (0 = take "
@@ -152,6 +159,23 @@ def validate(values: dict[str, Any]) -> CompleterParams:
     except SettingsError as exc:
         raise ParameterError(f"parameter {exc}") from exc
     return CompleterParams(**{k: values[k] for k in NODE_SETTINGS}, settings=settings)
+
+
+def track_ids_problems(params: CompleterParams) -> list[str]:
+    """Warnings for a boxes_type whose ids do not suit `track_ids` while tracks are used (track_fusion or reuse): a
+    tracker's UUIDs left unused (autoware_tracked without track_ids=message), or array indices taken for track
+    ids (autoware_detected with track_ids=message: index i is another vehicle in every frame)."""
+    s = params.settings
+    if not (s.track_fusion or s.reuse is not None):
+        return []
+    if params.boxes_type == "autoware_tracked" and s.track_ids == "associate":
+        return ["boxes_type autoware_tracked with track_ids 'associate': the tracker's UUIDs are not used as track "
+                "ids (the built-in association is); set track_ids:=message to key fusion and reuse by them"]
+    if params.boxes_type == "autoware_detected" and s.track_ids == "message":
+        return ["boxes_type autoware_detected with track_ids 'message': DetectedObjects carry no ids, their index in "
+                "the array is no track id (fusion and reuse would mix vehicles); use track_ids:=associate, or "
+                "TrackedObjects (autoware_tracked)"]
+    return []
 
 
 def check_model_sizes(params: CompleterParams, num_input: int, num_output: int, source: str) -> None:

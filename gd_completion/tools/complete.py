@@ -82,7 +82,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cloud-topic", default=None, help="PointCloud2 topic (default: the only one, or "
                         + ", ".join(DEFAULT_CLOUD_TOPICS) + ")")
     parser.add_argument("--boxes-topic", default=None,
-                        help="Detection3DArray or MarkerArray topic (default: the first Detection3DArray topic)")
+                        help="Detection3DArray, Autoware DetectedObjects or TrackedObjects, or MarkerArray topic "
+                             "(default: the first topic of the first of these types in the bag)")
     parser.add_argument("--output-topic", default=None, help="completed cloud topic (default: <namespace>/completed)")
     parser.add_argument("--storage", choices=STORAGES, default="mcap", help="output storage (default mcap)")
     parser.add_argument("--workers", type=_workers, default=1, metavar="N",

@@ -19,6 +19,7 @@ from gd_completion.pointcloud2 import read_points, read_xyz
 from gd_completion.render import render_birdseye, render_vehicles
 from gd_completion.settings import add_flags, from_args
 from gd_completion.stamp_sync import SYNC_TOLERANCE_S, stamp_to_ns
+from gd_completion.transforms import TransformBuffer
 
 
 def _paired_frame(reader: Any, pairing: BagPairing, frame: int) -> tuple[RecordedCloud, BoxSet | None] | None:
@@ -48,12 +49,14 @@ def read_frame(bag: str | Path, frame: int = 0, *, cloud_topic: str | None = Non
     with open_bag(bag) as reader:
         cloud_topic, boxes_topic, boxes_type = pick_topics(reader, cloud_topic, boxes_topic)
         completed_topic = completed_topic or default_output_topic(cloud_topic)
-        pairing = BagPairing(cloud_topic, boxes_topic, boxes_type, tolerance_s=sync_tolerance, source=str(bag))
+        transforms = TransformBuffer()
+        pairing = BagPairing(cloud_topic, boxes_topic, boxes_type, tolerance_s=sync_tolerance, transforms=transforms,
+                             source=str(bag))
         found = _paired_frame(reader, pairing, frame)
         if found is None:
             raise BagError(f"{bag}: {cloud_topic} has no frame {frame}")
         cloud, box_set = found
-        boxes = cloud.boxes_in_frame(box_set)[0]
+        boxes = cloud.boxes_in_frame(box_set, transforms)[0]
         completed = None
         if completed_topic in {c.topic for c in reader.connections}:
             completed = _cloud_at(reader, completed_topic, cloud.stamp_ns)
