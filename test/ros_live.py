@@ -110,6 +110,7 @@ class Client:
         self.reply_times: dict[int, float] = {}  # time.monotonic() at arrival, by stamp
         self.diag: dict[str, float] = {}
         self.diag_count = 0
+        self.diag_levels: list[tuple[int, str]] = []   # (level, message) of every report of the node, in order
         self.output_topic = f"{prefix}completed_vehicles"
         if subscribe_output:
             self.subscribe_output()
@@ -139,6 +140,8 @@ class Client:
             if status.name == self.status_name:
                 with self._cond:
                     self.diag = {kv.key: float(kv.value) for kv in status.values}
+                    self.diag_levels.append((status.level[0] if isinstance(status.level, bytes) else status.level,
+                                             status.message))
                     self.diag_count += 1
                     self._cond.notify_all()
 

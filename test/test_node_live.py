@@ -152,6 +152,20 @@ def test_completes_kitti_frames_from_markers(marker_node, frames):
     assert client.wait_diagnostics(base, expected) == expected
     assert node.stderr.count("completer ready") == 1
     assert client.diag["latency_p95_ms"] > 0 and client.diag["rate_hz"] > 0
+    # normal operation (a distant car with too few points among them): every report OK, so a monitor can trust WARN
+    assert client.diag_levels and {level for level, _ in client.diag_levels} == {0}, client.diag_levels
+
+
+def test_diagnostic_levels_call_for_action_only():
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from gd_completion.ros.completer_node import diagnostic_level
+
+    assert diagnostic_level({"skipped_too_few_points": 3, "drop_superseded": 1, "completions_deferred": 5,
+                             "frames_published": 10}) == (DiagnosticStatus.OK, "ok")
+    assert diagnostic_level({"boxes_no_transform": 2, "skipped_too_few_points": 1}) == (
+        DiagnosticStatus.WARN, "check the input: boxes_no_transform")
+    assert diagnostic_level({"errors": 1, "bad_cloud": 1})[0] == DiagnosticStatus.ERROR
 
 
 def test_slow_model_newest_frame_wins(marker_node, frames):

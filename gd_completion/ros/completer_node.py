@@ -71,6 +71,16 @@ COUNTER_KEYS = (
     "skipped_box_message_too_large", "skipped_unsupported_shape",
 )
 PROCESSING_TIME_TOPIC = "~/debug/processing_time_ms"
+# /diagnostics levels: counters that grew since the last report and call for action. Everything else (distant
+# vehicles with too few points, frames superseded or deferred under load, classes not completed, no subscriber,
+# non-finite points of organised clouds) is normal operation: counted, level OK.
+WARN_COUNTERS = frozenset({
+    "bad_cloud", "boxes_wrong_frame", "boxes_no_transform", "boxes_without_header", "unmapped_class_ids",
+    "skipped_degenerate_box", "skipped_implausible_box", "skipped_box_message_too_large", "skipped_unsupported_shape",
+    "skipped_too_many_boxes", "skipped_too_many_points", "skipped_output_limit", "skipped_time_budget",
+    "drop_cloud_no_boxes", "drop_boxes_no_cloud",
+})
+ERROR_COUNTERS = frozenset({"errors"})   # a frame or boxes message that failed with an exception
 
 
 # boxes_type -> (autoware_perception_msgs message, its converter)
@@ -103,6 +113,18 @@ def resolve_boxes_type(boxes_type: str) -> tuple[type, Callable[..., BoxSet], st
         else:
             return Detection3DArray, detections_to_boxes, "vision_msgs/msg/Detection3DArray"
     return MarkerArray, markers_to_boxes, "visualization_msgs/msg/MarkerArray"
+
+
+def diagnostic_level(grown: dict[str, int]) -> tuple[bytes, str]:
+    """The status level and message for the counters that grew since the last report: ERROR for failures, WARN
+    for input or capacity problems (`WARN_COUNTERS`), else OK."""
+    errors = sorted(k for k in grown if k in ERROR_COUNTERS)
+    warnings = sorted(k for k in grown if k in WARN_COUNTERS)
+    if errors:
+        return DiagnosticStatus.ERROR, "failed: " + ", ".join(errors + warnings)
+    if warnings:
+        return DiagnosticStatus.WARN, "check the input: " + ", ".join(warnings)
+    return DiagnosticStatus.OK, "ok"
 
 
 def _percentile_ms(values: deque, q: float) -> float:
@@ -390,15 +412,14 @@ class CompleterNode(Node):
 
     def _publish_diagnostics(self) -> None:
         values = self.diagnostics_values()
-        problems = {k: int(v) for k, v in values.items()
-                    if (k.startswith(("drop_", "skipped_", "bad_", "boxes_wrong", "boxes_without", "errors"))
-                        or k == "nonfinite_points") and v > self._last_report.get(k, 0)}
+        grown = {k: int(v) for k, v in values.items() if v > self._last_report.get(k, 0)}
         self._last_report = {k: int(v) for k, v in values.items()}
+        level, message = diagnostic_level(grown)
         status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK,
+            level=level,
             name=f"{self.get_fully_qualified_name()}: vehicle completion",
             hardware_id=self.get_fully_qualified_name(),
-            message=("new skips/drops: " + ", ".join(sorted(problems))) if problems else "ok",
+            message=message,
             values=[KeyValue(key=k, value=(f"{v:.3f}" if isinstance(v, float) else str(v)))
                     for k, v in values.items()],
         )
