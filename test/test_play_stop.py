@@ -7,6 +7,8 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +47,26 @@ def _start_player(bag: Path, tmp_path: Path, domain: int, *args: str) -> subproc
                             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@contextmanager
+def _ros_and_player() -> Iterator[tuple[int, object, list[subprocess.Popen]]]:
+    """(a test ROS domain, an rclpy context on it, a list to put the player in); on leaving, a player still running
+    is killed and the context shut down."""
+    import rclpy
+
+    domain = ros_test_domain_id()
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    players: list[subprocess.Popen] = []
+    try:
+        yield domain, context, players
+    finally:
+        for player in players:
+            if player.poll() is None:
+                player.kill()
+                player.communicate()
+        rclpy.shutdown(context=context)
+
+
 def _stop(player: subprocess.Popen, sig: signal.Signals) -> tuple[str, str]:
     player.send_signal(sig)
     try:
@@ -71,11 +93,7 @@ def test_signal_stops_a_loop_cleanly(small_bag: Path, tmp_path: Path, sig: signa
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
-    domain = ros_test_domain_id()
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain)
-    player = None
-    try:
+    with _ros_and_player() as (domain, context, players):
         node = rclpy.create_node("gd_completion_play_stop_test", context=context)
         got: list[bytes] = []
         node.create_subscription(PointCloud2, TOPIC, got.append, QoSProfile(depth=100,
@@ -83,6 +101,7 @@ def test_signal_stops_a_loop_cleanly(small_bag: Path, tmp_path: Path, sig: signa
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         player = _start_player(small_bag, tmp_path, domain, "--loop", "--wait-subscribers", "60", "--delay", "0.2")
+        players.append(player)
         deadline = time.monotonic() + START_TIMEOUT_S
         while len(got) <= MESSAGES and player.poll() is None and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
@@ -93,11 +112,6 @@ def test_signal_stops_a_loop_cleanly(small_bag: Path, tmp_path: Path, sig: signa
         assert published >= len(got) > MESSAGES
         executor.shutdown()
         node.destroy_node()
-    finally:
-        if player is not None and player.poll() is None:
-            player.kill()
-            player.communicate()
-        rclpy.shutdown(context=context)
 
 
 def test_sigint_while_waiting_for_subscribers(small_bag: Path, tmp_path: Path) -> None:
@@ -106,13 +120,10 @@ def test_sigint_while_waiting_for_subscribers(small_bag: Path, tmp_path: Path) -
     pytest.importorskip("rclpy")
     import rclpy
 
-    domain = ros_test_domain_id()
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain)
-    player = None
-    try:
+    with _ros_and_player() as (domain, context, players):
         node = rclpy.create_node("gd_completion_play_stop_watcher", context=context)
         player = _start_player(small_bag, tmp_path, domain, "--loop", "--wait-subscribers", "120")
+        players.append(player)
         deadline = time.monotonic() + START_TIMEOUT_S
         while node.count_publishers(TOPIC) == 0 and player.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -121,8 +132,3 @@ def test_sigint_while_waiting_for_subscribers(small_bag: Path, tmp_path: Path) -
         _assert_clean_stop(player, out, err, signal.SIGINT)
         assert out.strip() == "published: nothing; stopped by SIGINT"
         node.destroy_node()
-    finally:
-        if player is not None and player.poll() is None:
-            player.kill()
-            player.communicate()
-        rclpy.shutdown(context=context)
