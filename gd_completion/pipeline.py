@@ -26,6 +26,7 @@ from gd_completion.merge import merge_with_fed, merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
+from gd_completion.registration import align_planar
 from gd_completion.reuse import DUE_UNCACHED, CachedCompletion, CompletionCache, Decision, ReuseSettings
 from gd_completion.sampling import resample_indices
 from gd_completion.settings import CompletionSettings
@@ -201,6 +202,7 @@ class VehicleCompleter:
         rng = np.random.default_rng(0)
         cloud = (rng.random((self.num_input + 1, 3)) - 0.5) * np.array([1.0, 0.4, 0.35])
         self.complete_normalized([cloud.astype(np.float32)], [(4.5, 1.8, 1.6)])
+        align_planar(cloud + np.array([0.01, 0.0, 0.0]), cloud)   # track fusion's ICP kernel (fusion may be turned on)
 
     def close(self) -> None:
         """Stop the vehicle threads (idempotent)."""
