@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from gd_completion.association import TRACK_ID_MODES, AssociationSettings
@@ -163,28 +163,29 @@ def defaults(offline: bool = False) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class CompletionSettings:
-    """What a `VehicleCompleter` is built with; made from the table's values by `from_values`."""
+    """What a `VehicleCompleter` is built with; made from the table's values by `from_values` (or `offline`), so
+    its defaults are the table's."""
 
-    model_path: str = ""
-    device: str = "cpu"
-    num_threads: int = 0
-    min_points: int = 0            # 0: the checkpoint's
-    crop_margin: float = -1.0      # -1: the checkpoint's
-    labels: tuple[str, ...] = DEFAULT_LABELS
-    class_preset: str = DEFAULT_PRESET
-    class_map: tuple[str, ...] = ()   # the user's entries, as given
-    sync_tolerance: float = SYNC_TOLERANCE_S
-    use_tf: bool = True
-    transform_tolerance: float = 0.05
-    include_input_points: bool = True
-    measured_merge: bool = True
-    limits: FrameLimits = field(default_factory=FrameLimits)
-    track_fusion: bool = False
-    publish_fused_points: bool = False
-    fusion: FusionLimits = field(default_factory=FusionLimits)
-    track_ids: str = "associate"
-    association: AssociationSettings = field(default_factory=AssociationSettings)
-    reuse: ReuseSettings | None = None
+    model_path: str
+    device: str
+    num_threads: int
+    min_points: int              # 0: the checkpoint's
+    crop_margin: float           # -1: the checkpoint's
+    labels: tuple[str, ...]
+    class_preset: str
+    class_map: tuple[str, ...]   # the user's entries, as given (blank ones dropped)
+    sync_tolerance: float
+    use_tf: bool
+    transform_tolerance: float
+    include_input_points: bool
+    measured_merge: bool
+    limits: FrameLimits
+    track_fusion: bool
+    publish_fused_points: bool
+    fusion: FusionLimits
+    track_ids: str
+    association: AssociationSettings
+    reuse: ReuseSettings | None
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any], offline: bool = False) -> CompletionSettings:
@@ -237,11 +238,6 @@ class CompletionSettings:
     def classes(self) -> dict[str, str]:
         """Detector class -> label: the preset with the `class_map` entries on top."""
         return class_table(self.class_preset, self.class_map)
-
-    @property
-    def tracked(self) -> bool:
-        """Track ids are needed (fusion or reuse)."""
-        return self.track_ids != "off" and (self.track_fusion or self.reuse is not None)
 
 
 def _check(name: str, setting: Setting, value: Any) -> None:
@@ -314,9 +310,9 @@ def add_flags(parser: argparse.ArgumentParser, names: Iterable[str] | None = Non
                             help=f"{text} (default {shown}; the node's {name})")
 
 
-def from_args(args: argparse.Namespace, **fixed: Any) -> CompletionSettings:
-    """The offline settings of the flags given (see `add_flags`), with `fixed` values on top."""
+def from_args(args: argparse.Namespace) -> CompletionSettings:
+    """The offline settings of the flags given (see `add_flags`)."""
     given = {key.removeprefix("setting_"): value for key, value in vars(args).items()
              if key.startswith("setting_") and value is not None}
-    return CompletionSettings.from_values({**given, **fixed}, offline=True)
+    return CompletionSettings.from_values(given, offline=True)
 
