@@ -23,6 +23,7 @@ from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask,
 from gd_completion.labels import DEFAULT_LABELS, LABEL_IDS
 from gd_completion.limits import FrameLimits, screen_boxes
 from gd_completion.merge import merge_with_fed, merge_with_pool
+from gd_completion.model.box_refiner import box_from_frame
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
@@ -73,6 +74,13 @@ class FrameCompletion:
     label: np.ndarray  # (M,) uint8, LABEL_IDS
     generated: np.ndarray  # (M,) uint8: 0 measured point, 1 generated (by the network, or a mirrored measurement)
     stats: FrameStats
+    boxes: list[Box3D] = field(default_factory=list)   # per completed vehicle, in output order: its refined box
+    # (where the box refiner places the true box; the given box for a model without one), published id and label
+
+
+# One vehicle's network result: its completion (normalised), per point the row of the partial it copies (-1:
+# generated), and the refined box in the given box's normalised frame (`BoxFrame` vector; None without a refiner).
+VehicleResult = tuple[np.ndarray, np.ndarray, "np.ndarray | None"]
 
 
 def completion_to_structured(completion: FrameCompletion) -> np.ndarray:
@@ -250,7 +258,7 @@ class VehicleCompleter:
 
     def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None, merge: bool,
                       deadline: float, cancel: threading.Event | None, fused: Sequence[bool] | None = None,
-                      finish_by: bool = False) -> list[tuple[np.ndarray, np.ndarray] | None]:
+                      finish_by: bool = False) -> list[VehicleResult | None]:
         """Each vehicle's (completion, measured rows) in order (`_complete_one`; `fused`: which partials are a
         track's fused partial, none when None); None for those not started before `deadline` (time.monotonic) or
         after `cancel` was set. `finish_by`: a vehicle after the first starts only when it is expected to finish
@@ -258,7 +266,7 @@ class VehicleCompleter:
         if sizes is not None and len(sizes) != len(partials):
             raise ValueError(f"{len(partials)} partial clouds but {len(sizes)} box sizes")
 
-        def one(item: tuple[int, np.ndarray, Sequence[float] | None, bool]) -> tuple[np.ndarray, np.ndarray] | None:
+        def one(item: tuple[int, np.ndarray, Sequence[float] | None, bool]) -> VehicleResult | None:
             index, partial, size, fused = item
             started = time.monotonic()
             expected = self._vehicle_seconds if finish_by and index > 0 else 0.0
@@ -273,23 +281,25 @@ class VehicleCompleter:
                                  fused if fused is not None else [False] * count)))
 
     def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, fused: bool, merge: bool
-                      ) -> tuple[np.ndarray, np.ndarray]:
+                      ) -> VehicleResult:
         """Resample one vehicle to the network's input size (`preprocess.network_input`) and complete it (one
         task of the thread pool): (num_output, 3) float32 points in the normalised frame and, per point, the
         row of `partial` it copies (-1: generated); with `merge`, merged with the measured points the network
         saw (`merge.merge_with_fed`) or, for a track's `fused` partial, with one of its points per voxel
-        (`merge.merge_with_pool`), else all generated."""
+        (`merge.merge_with_pool`), else all generated; and the refined box's frame vector (None without a
+        refiner)."""
         partial = np.asarray(partial, np.float32).reshape(-1, 3)
         rows = resample_indices(len(partial), partial, self.num_input)
         shape = box_shape([size]).to(self.device) if size is not None else None
         with torch.inference_mode():   # thread-local: set in the thread that runs the model
             out = self.model(torch.from_numpy(partial[rows]).unsqueeze(0).to(self.device), shape)
             completion = out.completion[0].float().cpu().numpy()
+            frame = out.box_frame[0].double().cpu().numpy() if out.box_frame is not None else None
         if not merge:
-            return completion, np.full(len(completion), -1, np.int64)
+            return completion, np.full(len(completion), -1, np.int64), frame
         merged = merge_with_pool(completion, partial) if fused else \
             merge_with_fed(completion, partial, self.num_input, rows)
-        return merged.points, merged.measured_row
+        return merged.points, merged.measured_row, frame
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],
                        cancel: threading.Event | None = None, stamp_ns: int | None = None) -> FrameCompletion:
@@ -328,7 +338,7 @@ class VehicleCompleter:
         for vehicle, output in zip(vehicles, outputs):
             if output is None:
                 continue
-            completion, source = output
+            completion, source, box_frame = output
             if not include:
                 measured = np.zeros((0, 3), np.float32)
             elif fusion is not None and self.publish_fused_points:
@@ -339,7 +349,7 @@ class VehicleCompleter:
                 stats.skip(vehicle.box, "output_limit")
                 continue
             budget -= len(measured) + len(completion)
-            done.append((vehicle, measured, completion, source))
+            done.append((vehicle, measured, completion, source, box_frame))
         return self._assemble(boxes, done, stats, {id(b): g.instance_id for b, g in zip(boxes, given)})
 
     def _with_track_ids(self, boxes: Sequence[Box3D], stamp_ns: int | None) -> list[Box3D]:
@@ -357,10 +367,10 @@ class VehicleCompleter:
 
     def _completions(self, vehicles: Sequence[CroppedVehicle], stamp_ns: int | None, deadline: float,
                      cancel: threading.Event | None, stats: FrameStats, include: bool
-                     ) -> list[tuple[np.ndarray, np.ndarray] | None]:
-        """Per vehicle, its completion (normalised) and per point its `generated` flag, or None when it is skipped
-        (counted in `stats`): the network's for the vehicles due (all of them without reuse), the cached one for
-        the others."""
+                     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray | None] | None]:
+        """Per vehicle, its completion (normalised), per point its `generated` flag and its refined box's frame
+        vector, or None when it is skipped (counted in `stats`): the network's for the vehicles due (all of them
+        without reuse), the cached one for the others."""
         stamp = stamp_ns if stamp_ns is not None else 0
         cache = self.cache if stamp_ns is not None else None   # reuse needs the stream's stamps
         decisions = self._decisions(vehicles, stamp, cache)
@@ -377,19 +387,19 @@ class VehicleCompleter:
                                      finish_by=cache is not None and math.isfinite(cache.settings.budget_s))
         ran = dict(zip(due, results))
         cancelled = cancel is not None and cancel.is_set()
-        outputs: list[tuple[np.ndarray, np.ndarray] | None] = []
+        outputs: list[tuple[np.ndarray, np.ndarray, np.ndarray | None] | None] = []
         for i, (vehicle, decision) in enumerate(zip(vehicles, decisions)):
             result = ran.get(i)
             if result is not None:
                 stats.completions_run += 1
                 if cache is not None and vehicle.box.instance_id >= 0:
                     cache.store(vehicle.box.instance_id, stamp, vehicle.box.size, result[0], result[1] >= 0,
-                                vehicle.normalized)
-                outputs.append(self._fresh_output(vehicle, *result, include))
+                                vehicle.normalized, result[2])
+                outputs.append((*self._fresh_output(vehicle, result[0], result[1], include), result[2]))
             elif decision.cached is not None and not cancelled:
                 stats.completions_reused += 1
                 stats.completions_deferred += decision.due
-                outputs.append(self._cached_output(decision.cached, include))
+                outputs.append((*self._cached_output(decision.cached, include), decision.cached.box_frame))
             else:
                 reason = "cancelled" if cancelled else "time_budget" if time.monotonic() > deadline else "deferred"
                 stats.skip(vehicle.box, reason)
@@ -438,21 +448,25 @@ class VehicleCompleter:
         return points, np.ones(len(points), np.uint8)
 
     def _assemble(self, boxes: Sequence[Box3D],
-                  done: list[tuple[CroppedVehicle, np.ndarray, np.ndarray, np.ndarray]],
+                  done: list[tuple[CroppedVehicle, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]],
                   stats: FrameStats, published_ids: dict[int, int]) -> FrameCompletion:
         """The frame's output: per vehicle (in the order of `boxes`) its measured points, then its completion placed
-        by its box; `instance_id` from `published_ids` (by `id()` of the box: the id the caller gave it)."""
+        by its box, and its refined box; `instance_id` from `published_ids` (by `id()` of the box: the id the caller
+        gave it)."""
         order = {id(box): i for i, box in enumerate(boxes)}
         done.sort(key=lambda item: order.get(id(item[0].box), 0))
         parts: list[np.ndarray] = []
         ids: list[np.ndarray] = []
         labels: list[np.ndarray] = []
         flags: list[np.ndarray] = []
-        for vehicle, measured, completion, source in done:
+        refined: list[Box3D] = []
+        for vehicle, measured, completion, source, box_frame in done:
             generated = denormalize(completion, vehicle.box).astype(np.float32)
             count = len(measured) + len(generated)
             parts += [measured, generated]
-            ids.append(np.full(count, published_ids.get(id(vehicle.box), vehicle.box.instance_id), np.int32))
+            published = replace(vehicle.box, instance_id=published_ids.get(id(vehicle.box), vehicle.box.instance_id))
+            refined.append(box_from_frame(published, box_frame) if box_frame is not None else published)
+            ids.append(np.full(count, published.instance_id, np.int32))
             labels.append(np.full(count, LABEL_IDS.get(vehicle.box.label, 0), np.uint8))
             flags += [np.zeros(len(measured), np.uint8), source]
         stats.completed = len(done)
@@ -460,7 +474,7 @@ class VehicleCompleter:
             return FrameCompletion(np.zeros((0, 3), np.float32), np.zeros(0, np.int32),
                                    np.zeros(0, np.uint8), np.zeros(0, np.uint8), stats)
         return FrameCompletion(np.concatenate(parts).astype(np.float32, copy=False), np.concatenate(ids),
-                               np.concatenate(labels), np.concatenate(flags), stats)
+                               np.concatenate(labels), np.concatenate(flags), stats, refined)
 
 
 def _nearness(box: Box3D) -> float:

@@ -67,6 +67,7 @@ class CachedCompletion:
     stamp_ns: int
     reference: cKDTree          # the measured points it was made from, metres in the box frame (voxel-thinned)
     last_seen_ns: int
+    box_frame: np.ndarray | None = None   # the refined box in that box's frame (`BoxFrame` vector), if any
 
     def __post_init__(self) -> None:
         self.generated = self.points[~self.measured]   # what is published beside this frame's measured points
@@ -125,16 +126,16 @@ class CompletionCache:
         return Decision(due, urgency, reason if due else "", entry)
 
     def store(self, key: int, stamp_ns: int, size: tuple[float, ...], points: np.ndarray,
-              measured: np.ndarray, source: np.ndarray) -> None:
+              measured: np.ndarray, source: np.ndarray, box_frame: np.ndarray | None = None) -> None:
         """Keep `points` (normalised, `measured` rows copying measurements) as track `key`'s completion, made at
-        `stamp_ns` from the normalised points `source` of a box of `size`."""
+        `stamp_ns` from the normalised points `source` of a box of `size` (and the refined box's `box_frame`)."""
         from scipy.spatial import cKDTree  # on first use: `completer --help` stays light
 
         metres = _metres(source, size[0])
         reference = cKDTree(metres[voxel_first_indices(metres, self.settings.distance / 2)] if len(metres)
                             else np.full((1, 3), 1e6, np.float32))   # nothing measured: every point is new
         entry = CachedCompletion(np.asarray(points, np.float32), np.asarray(measured, bool),
-                                 tuple(float(v) for v in size), int(stamp_ns), reference, int(stamp_ns))
+                                 tuple(float(v) for v in size), int(stamp_ns), reference, int(stamp_ns), box_frame)
         with self._lock:
             self._entries[key] = entry
             self._entries.move_to_end(key)

@@ -176,7 +176,7 @@ def test_own_points_keep_their_measured_place_without_include_input_points() -> 
         result = completer.complete_frame(cloud, [box], stamp_ns=k * SECOND // 10)
         (fused,) = twin.update(k * SECOND // 10, completer.prepare(cloud, [box], FrameStats()))
     assert completer.fusion.counters["frames_aligned"] >= 4
-    completion, rows = completer._complete_one(fused.normalized, box.size, True, True)
+    completion, rows, _ = completer._complete_one(fused.normalized, box.size, True, True)
     own = rows >= len(fused.normalized) - fused.current_rows
     assert own.sum() > 20 and (result.generated == 0).sum() == own.sum()
     published = result.points[own].astype(np.float64)           # the completion's order, own rows in place
@@ -347,7 +347,7 @@ def test_merged_measured_points_are_published_once(include: bool, fused_points: 
         vehicle = twin.update(k * SECOND // 10, completer.prepare(points, [box], FrameStats()))[0]
     assert len(track) == 3 and len(np.unique(result.points, axis=0)) == len(result.points)
     # the completion of the last frame, recomputed from the same fused partial (the network is deterministic)
-    completion, rows = completer._complete_one(vehicle.normalized, box.size, True, True)
+    completion, rows, _ = completer._complete_one(vehicle.normalized, box.size, True, True)
     own_from = 0 if fused_points else len(vehicle.normalized) - vehicle.current_rows   # this frame's: the last rows
     own = rows >= own_from
     expected = denormalize(completion, box).astype(np.float32)

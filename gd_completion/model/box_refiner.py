@@ -7,11 +7,14 @@ output stays in the frame of the box it was given and the preprocessing contract
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor, nn
+
+from gd_completion.geometry import Box3D
 
 from .folding import FoldCache, fold_bn
 
@@ -61,6 +64,17 @@ def from_frame(points: Tensor, frame: BoxFrame) -> Tensor:
 def refined_shape(shape: Tensor, frame: BoxFrame) -> Tensor:
     """Box shape (B, 2) = (width, height) / length of the refined box, from the given box's."""
     return shape * frame.scale[:, 1:] / frame.scale[:, :1]
+
+
+def box_from_frame(box: Box3D, vector: np.ndarray) -> Box3D:
+    """The refined box in the cloud's frame, from the given `box` and the refiner's `BoxFrame` vector (7,) in that
+    box's normalised frame (centre in box lengths, yaw offset, log size factors); label and instance id kept."""
+    v = np.asarray(vector, np.float64)
+    c, s = math.cos(box.yaw), math.sin(box.yaw)
+    dx, dy, dz = v[:3] * box.size[0]
+    centre = (box.center[0] + c * dx - s * dy, box.center[1] + s * dx + c * dy, box.center[2] + dz)
+    size = tuple(float(a * math.exp(b)) for a, b in zip(box.size, v[4:]))
+    return Box3D(tuple(float(x) for x in centre), size, float(box.yaw + v[3]), box.label, box.instance_id)
 
 
 def frame_targets(box_noise: np.ndarray, yaw: np.ndarray, size: np.ndarray, true_size: np.ndarray) -> np.ndarray:

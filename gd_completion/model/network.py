@@ -31,6 +31,8 @@ class GGDOutput(NamedTuple):
     generated: Tensor         # P_g (B, N_o, 3) = concat(P_c, P_s)
     neighbours: Tensor        # kNN graph of P_g (B, N_o, k), used by the Laplacian loss
     control_index: Tensor     # (B, N_c) indices of P_c in the input
+    box_frame: Tensor | None = None   # (B, 7) the refined box in the given box's frame (`BoxFrame` vector); None
+                                      # without a box refiner
 
 
 class LinearBN(nn.Module):
@@ -357,7 +359,8 @@ class GGDNet(nn.Module):
         order = self._order(partial)    # one FPS loop for the whole batch
         if self._in_chunks(partial):
             parts = [self._forward(*chunk) for chunk in self._chunks(partial, order, shape)]
-            out = GGDOutput(*(torch.cat(ts, 0) for ts in zip(*parts)))
+            # every field but box_frame (set below, for the whole batch)
+            out = GGDOutput(*(torch.cat(ts, 0) for ts in zip(*(part[:-1] for part in parts))))
         else:
             out = self._forward(partial, order, shape)
         if frame is None:
@@ -365,7 +368,7 @@ class GGDNet(nn.Module):
         nc = self.config.num_control   # P_c, P_s and P_c' are parts of P_g and P_o: two transforms, not five
         generated, completion = from_frame(out.generated, frame), from_frame(out.completion, frame)
         return out._replace(generated=generated, completion=completion, control=generated[:, :nc],
-                            coarse=generated[:, nc:], control_deformed=completion[:, :nc])
+                            coarse=generated[:, nc:], control_deformed=completion[:, :nc], box_frame=frame.to_vector())
 
     def _forward(self, partial: Tensor, order: Tensor, shape: Tensor | None) -> GGDOutput:
         code, coarse, control, control_index, order = self._generate(partial, order, shape)

@@ -47,6 +47,7 @@ from gd_completion.ros.params import (
     unknown_parameters,
     validate,
 )
+from gd_completion.ros.refined_boxes import refined_boxes_output
 from gd_completion.settings import CompletionSettings
 from gd_completion.stamp_sync import LatestSlot, Pair, StampSync, stamp_to_ns
 from gd_completion.transforms import TransformBuffer, boxes_in_frame
@@ -172,6 +173,10 @@ class CompleterNode(Node):
         self._started = time.monotonic()
 
         self._output_pub = self.create_publisher(PointCloud2, p.output_topic, QoSProfile(depth=5))
+        self._refined_pub, self._refined_msg = None, None
+        if p.refined_boxes_topic.strip():
+            refined_cls, self._refined_msg, _ = refined_boxes_output(p.boxes_type)
+            self._refined_pub = self.create_publisher(refined_cls, p.refined_boxes_topic, QoSProfile(depth=5))
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         self._time_pub = self.create_publisher(Float64, PROCESSING_TIME_TOPIC, QoSProfile(depth=10))
         self._tf = self._subscribe_tf(p.settings)
@@ -334,7 +339,8 @@ class CompleterNode(Node):
                 self._warn("error", f"frame skipped after an unexpected error: {exc!r}")
 
     def _complete(self, pair: Pair, ready_at: float) -> None:
-        if self._output_pub.get_subscription_count() == 0:   # lazy: no model work that nobody receives
+        publishers = [pub for pub in (self._output_pub, self._refined_pub) if pub is not None]
+        if not any(pub.get_subscription_count() for pub in publishers):   # lazy: no model work nobody receives
             self._count("frames_without_subscribers")
             self._warn("no_subscribers", f"nobody subscribes to {self.params.output_topic}: frames are paired "
                                          "and dropped without model work")
@@ -370,6 +376,8 @@ class CompleterNode(Node):
         if self._stopping.is_set():
             return
         self._output_pub.publish(msg)
+        if self._refined_pub is not None and self._refined_msg is not None:
+            self._refined_pub.publish(self._refined_msg(completion.boxes, header))
         self._time_pub.publish(Float64(data=(time.perf_counter() - started + pair.boxes.decode_s) * 1e3))
         done = time.monotonic()
         with self._lock:

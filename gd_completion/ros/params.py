@@ -28,6 +28,7 @@ class CompleterParams:
     cloud_topic: str
     boxes_topic: str
     output_topic: str
+    refined_boxes_topic: str
     boxes_type: str
     num_input_points: int
     num_output_points: int
@@ -46,6 +47,10 @@ NODE_SETTINGS: dict[str, Setting] = {
                                          "or TrackedObjects: see boxes_type)."),
     "output_topic": Setting("completed_vehicles", "Output PointCloud2: x, y, z, instance_id, label, generated; "
                                                   "input header."),
+    "refined_boxes_topic": Setting("", "Also publish each completed vehicle's refined box (where the box refiner "
+                                       "places the true box; the cloud's header, the box's id and label) on this "
+                                       "topic: vision_msgs/Detection3DArray, or autoware_perception_msgs/"
+                                       "DetectedObjects with an Autoware boxes_type; empty = off."),
     "boxes_type": Setting("auto", "Boxes message type: auto (Detection3DArray when vision_msgs is installed, else "
                                   "MarkerArray), detection3d, marker, autoware_detected "
                                   "(autoware_perception_msgs/DetectedObjects: instance id = index in the array) or "
@@ -71,7 +76,7 @@ NODE_SETTINGS: dict[str, Setting] = {
     "max_boxes_per_message": Setting(1000, "A boxes message with more boxes is refused before it is converted "
                                            "(skipped_box_message_too_large).", 1, 1_000_000),
 }
-_TOPICS = ("cloud_topic", "boxes_topic", "output_topic", "boxes_type")
+_TOPICS = ("cloud_topic", "boxes_topic", "output_topic", "refined_boxes_topic", "boxes_type")
 # Every parameter of the node, in the order of `completer --help`, the README table and config/completer.yaml.
 ALL_SETTINGS: dict[str, Setting] = {**{k: NODE_SETTINGS[k] for k in _TOPICS}, **SETTINGS,
                                     **{k: v for k, v in NODE_SETTINGS.items() if k not in _TOPICS}}
