@@ -10,6 +10,7 @@ from __future__ import annotations
 import bisect
 import math
 import threading
+import time
 from array import array
 from collections import Counter
 from collections.abc import Sequence
@@ -41,6 +42,10 @@ _WIDTH = 7               # tx, ty, tz, qx, qy, qz, qw per dynamic sample
 
 class TransformError(GDCompletionError):
     """A transform that cannot be looked up: unknown frame, frames not connected, stamp outside the data."""
+
+
+class TransformNotYet(TransformError):
+    """The stamp is newer than an edge's newest sample: the transform may still arrive."""
 
 
 @dataclass
@@ -163,7 +168,7 @@ class TransformBuffer:
         self.last_problem: str | None = None  # why the latest skipped transform was skipped (for a log line)
         self._edges: dict[str, _Static | _Dynamic] = {}  # child -> its edge to its parent
         self._parent_refs: Counter[str] = Counter()      # frame -> how many children name it as parent
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()   # a lock; notified when transforms arrive (`lookup`'s wait)
 
     # ---- ingestion -------------------------------------------------------------------------------------
 
@@ -182,6 +187,8 @@ class TransformBuffer:
         with self._lock:
             for t in entries:
                 taken += self._add(t, static)
+            if taken:
+                self._lock.notify_all()
         return taken
 
     def _skip(self, counter: str, why: str) -> int:
@@ -279,12 +286,14 @@ class TransformBuffer:
                                                                  if c == _frame(child)]
             return sum(len(e.stamps) if isinstance(e, _Dynamic) else 1 for e in edges)
 
-    def lookup(self, target_frame: str, source_frame: str, stamp_ns: int) -> np.ndarray:
+    def lookup(self, target_frame: str, source_frame: str, stamp_ns: int, wait_s: float = 0.0) -> np.ndarray:
         """(4, 4) float64 mapping points in `source_frame` to `target_frame` at `stamp_ns`.
 
         Dynamic edges are interpolated between the samples around the stamp (translation linear, rotation
         slerp). Identity when the frames are equal. Raises TransformError naming the frames: unknown frame,
-        frames in different trees, or a stamp outside an edge's samples by more than extrapolation_s."""
+        frames in different trees, or a stamp outside an edge's samples by more than extrapolation_s.
+        `wait_s`: until the transforms bracket the stamp (no held sample needed), wait up to this long for them to
+        arrive (as tf2's `canTransform` with a timeout); then look up as without a wait."""
         target, source = _frame(target_frame), _frame(source_frame)
         what = f"cannot transform {source_frame!r} -> {target_frame!r}"
         if not target or not source:
@@ -296,14 +305,33 @@ class TransformBuffer:
         if target == source:
             return np.eye(4)
         with self._lock:
-            src_chain, tgt_chain = self._chain(source, what), self._chain(target, what)
-            at = {f: i for i, f in enumerate(tgt_chain)}
-            common = next((i for i, f in enumerate(src_chain) if f in at), None)
-            if common is None:
-                raise TransformError(f"{what}: the frames are not connected ({source!r} is in the tree of "
-                                     f"{src_chain[-1]!r}, {target!r} in the tree of {tgt_chain[-1]!r})")
-            up_source = self._compose(src_chain[:common], stamp, what)
-            up_target = self._compose(tgt_chain[:at[src_chain[common]]], stamp, what)
+            if wait_s > 0:
+                deadline = time.monotonic() + wait_s
+                while not self._ready(target, source, stamp, what) and (left := deadline - time.monotonic()) > 0:
+                    self._lock.wait(left)
+            return self._locked_lookup(target, source, stamp, what, self.extrapolation_ns)
+
+    def _ready(self, target: str, source: str, stamp: int, what: str) -> bool:
+        """Whether waiting cannot improve the lookup: every dynamic edge has samples on both sides of the stamp,
+        or it fails for a reason later transforms do not mend (unknown or unconnected frames, a stamp too old)."""
+        try:
+            self._locked_lookup(target, source, stamp, what, 0)
+        except TransformNotYet:
+            return False
+        except TransformError:
+            return True
+        return True
+
+    def _locked_lookup(self, target: str, source: str, stamp: int, what: str, tolerance_ns: int) -> np.ndarray:
+        """`lookup` under the lock, holding the nearest sample up to `tolerance_ns` outside an edge's samples."""
+        src_chain, tgt_chain = self._chain(source, what), self._chain(target, what)
+        at = {f: i for i, f in enumerate(tgt_chain)}
+        common = next((i for i, f in enumerate(src_chain) if f in at), None)
+        if common is None:
+            raise TransformError(f"{what}: the frames are not connected ({source!r} is in the tree of "
+                                 f"{src_chain[-1]!r}, {target!r} in the tree of {tgt_chain[-1]!r})")
+        up_source = self._compose(src_chain[:common], stamp, what, tolerance_ns)
+        up_target = self._compose(tgt_chain[:at[src_chain[common]]], stamp, what, tolerance_ns)
         return _inverse(up_target) @ up_source
 
     def _chain(self, frame: str, what: str) -> list[str]:
@@ -317,14 +345,14 @@ class TransformBuffer:
             chain.append(edge.parent)
         return chain
 
-    def _compose(self, children: list[str], stamp: int, what: str) -> np.ndarray:
+    def _compose(self, children: list[str], stamp: int, what: str, tolerance_ns: int) -> np.ndarray:
         """Matrix mapping points in children[0] to the parent of children[-1] (identity for none)."""
         out = np.eye(4)
         for child in children:
-            out = self._edge_matrix(child, stamp, what) @ out
+            out = self._edge_matrix(child, stamp, what, tolerance_ns) @ out
         return out
 
-    def _edge_matrix(self, child: str, stamp: int, what: str) -> np.ndarray:
+    def _edge_matrix(self, child: str, stamp: int, what: str, tolerance_ns: int) -> np.ndarray:
         edge = self._edges[child]
         if isinstance(edge, _Static):
             return edge.matrix
@@ -341,11 +369,11 @@ class TransformBuffer:
             return _matrix(np.concatenate([v0[:3] + f * (v1[:3] - v0[:3]), q]))
         nearest = 0 if i == 0 else len(stamps) - 1
         gap = stamps[0] - stamp if i == 0 else stamp - stamps[-1]
-        if gap <= self.extrapolation_ns:
+        if gap <= tolerance_ns:
             return _matrix(vals[_WIDTH * nearest:_WIDTH * (nearest + 1)])
         side = "past" if i == 0 else "future"
         relation = "before the oldest" if i == 0 else "after the newest"
-        raise TransformError(
+        raise (TransformError if i == 0 else TransformNotYet)(
             f"{what} at {stamp / _NS:.3f} s: edge {edge.parent!r} -> {child!r} would need extrapolation into the "
             f"{side}: its samples cover [{stamps[0] / _NS:.3f}, {stamps[-1] / _NS:.3f}] s, the stamp is "
             f"{gap / _NS:.3f} s {relation} (tolerance {self.extrapolation_ns / _NS:g} s)")
@@ -378,18 +406,19 @@ def transform_boxes(boxes: Sequence[Box3D], matrix: np.ndarray) -> list[Box3D]:
 
 
 def boxes_to_frame(boxes: Sequence[Box3D], source_frame: str, target_frame: str, stamp_ns: int,
-                   buffer: TransformBuffer) -> list[Box3D]:
-    """Boxes given in `source_frame` expressed in `target_frame` at `stamp_ns`; TransformError when the buffer
-    cannot give that transform."""
-    return transform_boxes(boxes, buffer.lookup(target_frame, source_frame, stamp_ns))
+                   buffer: TransformBuffer, wait_s: float = 0.0) -> list[Box3D]:
+    """Boxes given in `source_frame` expressed in `target_frame` at `stamp_ns` (waiting up to `wait_s` for
+    transforms not yet received: `TransformBuffer.lookup`); TransformError when the buffer cannot give it."""
+    return transform_boxes(boxes, buffer.lookup(target_frame, source_frame, stamp_ns, wait_s))
 
 
 def boxes_in_frame(box_set: BoxSet, frame_id: str, stamp_ns: int, buffer: TransformBuffer | None,
-                   problems: list[str] | None = None) -> tuple[list[Box3D], int]:
+                   problems: list[str] | None = None, wait_s: float = 0.0) -> tuple[list[Box3D], int]:
     """The boxes of `box_set` in `frame_id` at `stamp_ns` (input order), and how many had no transform.
 
     Boxes already in `frame_id` are kept as they are; the others are transformed, one lookup per frame, when
-    `buffer` has the transform, else counted (the lookup's message is appended to `problems` when given).
+    `buffer` has the transform (live, waiting up to `wait_s` for one not yet received), else counted (the lookup's
+    message is appended to `problems` when given).
     With buffer None: exactly `box_set.split_by_frame(frame_id)`."""
     if buffer is None:
         return box_set.split_by_frame(frame_id)
@@ -404,7 +433,7 @@ def boxes_in_frame(box_set: BoxSet, frame_id: str, stamp_ns: int, buffer: Transf
             moved = members
         else:
             try:
-                moved = boxes_to_frame(members, frame, frame_id, stamp_ns, buffer)
+                moved = boxes_to_frame(members, frame, frame_id, stamp_ns, buffer, wait_s)
             except TransformError as exc:
                 missing += len(idx)
                 if problems is not None:

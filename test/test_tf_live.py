@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -138,18 +137,20 @@ def test_boxes_in_map_are_completed_in_the_lidar_frame(ros_context, frames, tmp_
         in_map = None
         for _ in range(5):   # clouds go out best effort: resend (new stamp, new /tf) until one is answered
             stamp = client.next_stamp()
-            for ns, m in tf_samples(stamp):
+            samples = tf_samples(stamp)
+            for ns, m in samples[:-2]:
                 tf_pub.publish(rclpy_tf([("map", "base_link", m)], ns, msgs))
-            time.sleep(0.2)   # as on a robot, the transforms are in before the tracker's boxes of that stamp
             client.cloud_pub.publish(cloud_msg(frame.points, stamp, LIDAR))
             client.boxes_pub.publish(marker_array(boxes_in_map(frame.boxes, seconds(stamp)), stamp, "map"))
+            for ns, m in samples[-2:]:   # the transforms at and after the stamp come later (transform_wait)
+                tf_pub.publish(rclpy_tf([("map", "base_link", m)], ns, msgs))
             msg = client.wait_reply(stamp, timeout=10.0)
             if msg is not None:
                 in_map = read_points(msg)
                 break
         assert in_map is not None, node.stderr[-2000:]
         error = max_centre_error(reference, in_map)
-        assert error <= 0.05, f"completed vehicles {error:.3f} m from the lidar-frame scene's"
+        assert error <= 0.01, f"completed vehicles {error:.3f} m from the lidar-frame scene's"  # issue bound: 0.05
 
         # a frame long after the last /tf sample: no transform, its boxes skipped and counted
         late = client.next_stamp() + 10 * 10**9

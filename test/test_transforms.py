@@ -339,9 +339,9 @@ class CountingBuffer(TransformBuffer):
         super().__init__(*args, **kwargs)
         self.lookups: list[tuple[str, str]] = []
 
-    def lookup(self, target_frame, source_frame, stamp_ns):
+    def lookup(self, target_frame, source_frame, stamp_ns, wait_s=0.0):
         self.lookups.append((target_frame, source_frame))
-        return super().lookup(target_frame, source_frame, stamp_ns)
+        return super().lookup(target_frame, source_frame, stamp_ns, wait_s)
 
 
 def test_boxes_in_frame_transforms_per_frame_and_counts_the_rest():
@@ -384,3 +384,35 @@ def test_bad_parameters_raise():
             TransformBuffer(**kwargs)
     with pytest.raises(TransformError, match="not integer nanoseconds"):
         scene().lookup("map", "lidar", "soon")
+
+
+def test_a_lookup_waits_for_a_transform_still_to_come():
+    """A stamp past the newest sample (the transform lags the cloud, as tf often does): with a wait, the lookup takes
+    the sample that arrives meanwhile and interpolates, instead of holding the older one; a stamp older than the
+    samples is no reason to wait (waiting cannot mend it) and fails as without one."""
+    import threading
+
+    from gd_completion.transforms import TransformNotYet
+
+    buf = scene(extrapolation_s=0.05)
+    last = odom_stamp(N_SAMPLES - 1)
+    stamp = last + 40_000_000                       # within the tolerance: without a wait, the held sample
+    np.testing.assert_allclose(buf.lookup("map", "base_link", stamp), map_base(last), atol=1e-12)
+    arrived = threading.Event()
+
+    def late_odometry() -> None:
+        arrived.wait(5.0)
+        nxt = odom_stamp(N_SAMPLES)
+        buf.add_message(NS(transforms=[tf_of("map", "base_link", nxt, map_base(nxt))]), static=False)
+
+    feeder = threading.Thread(target=late_odometry)
+    feeder.start()
+    arrived.set()
+    waited = buf.lookup("map", "base_link", stamp, wait_s=30.0)
+    feeder.join()
+    np.testing.assert_allclose(waited, map_base(stamp), atol=1e-9)   # interpolated with the late sample
+    with pytest.raises(TransformNotYet):             # nothing comes: after the wait, beyond the tolerance
+        buf.lookup("map", "base_link", odom_stamp(N_SAMPLES) + 60_000_000, wait_s=0.05)
+    with pytest.raises(TransformError) as past:
+        buf.lookup("map", "base_link", T0 - 200_000_000, wait_s=30.0)
+    assert not isinstance(past.value, TransformNotYet) and "into the past" in str(past.value)
