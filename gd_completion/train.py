@@ -15,7 +15,7 @@ import torch
 from .errors import CheckpointError, DataFormatError, TrainingError
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.config import GGDConfig
-from .model.losses import CD_SCALE, chamfer_l2, ggd_loss
+from .model.losses import CD_SCALE, SURFACE_SCALE, chamfer_l2, ggd_loss, surface_distance
 from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
 
@@ -35,6 +35,7 @@ class TrainSettings:
     lam: float = 3.0
     alpha: float = 1000.0
     beta: float = 0.5
+    gamma: float = 0.0              # weight of the surface term (0: the paper's loss); see losses.ggd_loss
     batch_size: int = 32
     lr: float = 1e-3                # paper: 0.01; see docs/MODEL.md
     lr_final: float | None = None   # cosine decay per epoch from lr to lr_final (None: constant lr)
@@ -95,9 +96,9 @@ def _pairs(data: ArrayPair, name: str, cfg: GGDConfig) -> tuple[torch.Tensor, to
         raise DataFormatError(f"{name}: a box-conditioned model needs the box sizes (partial, complete, sizes)")
     if partial.shape[0] != complete.shape[0] or partial.shape[0] == 0:
         raise DataFormatError(f"{name}: {partial.shape[0]} partial vs {complete.shape[0]} complete samples")
-    if partial.shape[1] != cfg.num_input or complete.shape[1] != cfg.num_output:
-        raise DataFormatError(f"{name}: expected partial (S, {cfg.num_input}, 3) and complete "
-                              f"(S, {cfg.num_output}, 3), got {tuple(partial.shape)} and {tuple(complete.shape)}")
+    if partial.shape[1] != cfg.num_input or complete.shape[1] < cfg.num_output:
+        raise DataFormatError(f"{name}: expected partial (S, {cfg.num_input}, 3) and complete (S, >= "
+                              f"{cfg.num_output}, 3), got {tuple(partial.shape)} and {tuple(complete.shape)}")
     return partial, complete, shapes
 
 
@@ -108,18 +109,20 @@ def _rows(shapes: torch.Tensor | None, idx: Any, device: torch.device | str) -> 
 @torch.inference_mode()
 def evaluate(model: GGDNet, partial: torch.Tensor, complete: torch.Tensor, batch_size: int,
              device: str | torch.device, shapes: torch.Tensor | None = None) -> dict[str, float]:
-    """Mean Chamfer (x1000) of P_o (`cd_completion`), of the generation branch P_g (`cd_generated`) and P_s."""
+    """Mean Chamfer (x1000) of P_o (`cd_completion`), of the generation branch P_g (`cd_generated`) and P_s, and
+    the mean distance (x100) of P_o's points to the nearest ground-truth point (`surface`)."""
     was_training = model.training
     model.eval()
-    sums = {"cd_completion": 0.0, "cd_generated": 0.0, "cd_coarse": 0.0}
+    sums = {"cd_completion": 0.0, "cd_generated": 0.0, "cd_coarse": 0.0, "surface": 0.0}
     for s in range(0, partial.shape[0], batch_size):
         x, gt = partial[s:s + batch_size].to(device), complete[s:s + batch_size].to(device)
         out = model(x, _rows(shapes, slice(s, s + batch_size), device))
         sums["cd_completion"] += chamfer_l2(out.completion, gt).sum().item()
         sums["cd_generated"] += chamfer_l2(out.generated, gt).sum().item()
         sums["cd_coarse"] += chamfer_l2(out.coarse, gt).sum().item()
+        sums["surface"] += surface_distance(out.completion, gt).sum().item()
     model.train(was_training)
-    return {k: CD_SCALE * v / partial.shape[0] for k, v in sums.items()}
+    return {k: (SURFACE_SCALE if k == "surface" else CD_SCALE) * v / partial.shape[0] for k, v in sums.items()}
 
 
 def _backward(model: torch.nn.Module, total: torch.Tensor, max_grad_norm: float) -> bool:
@@ -256,7 +259,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             idx = perm[s:s + settings.batch_size]
             x, gt = tr_x[idx].to(device), tr_y[idx].to(device)
             losses = ggd_loss(model(x, _rows(tr_s, idx, device)), gt, lam=lam, alpha=settings.alpha,
-                              beta=settings.beta)
+                              beta=settings.beta, gamma=settings.gamma)
             optimizer.zero_grad(set_to_none=True)
             if not _backward(model, losses["total"], settings.max_grad_norm):
                 skipped = _skip_step(epoch, s // settings.batch_size + 1, skipped, settings.max_skipped_steps)

@@ -369,3 +369,20 @@ def test_frozen_parameters_and_their_batch_norms_stay_as_they_are(tmp_path):
                     _settings(epochs=3, generation_epochs=0, freeze=("refiner.",)), resume=True)
     assert len(resumed.history) == 3
     assert all(torch.equal(before[k], load_model(resumed.last_path).state_dict()[k]) for k in refiner)
+
+
+def test_surface_term_is_the_unsquared_distance_and_trains_on_denser_targets(tmp_path):
+    """The surface term is the mean Euclidean distance of each output point to its nearest target point (3-4-5:
+    5 and 0 -> 2.5); with gamma > 0 it enters the loss after the generation epochs, and targets denser than N_o
+    are accepted."""
+    from gd_completion.model.losses import surface_distance
+
+    points = torch.tensor([[[3.0, 4.0, 0.0], [0.0, 0.0, 1.0]]])
+    gt = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [10.0, 0.0, 0.0]]])
+    assert surface_distance(points, gt).tolist() == pytest.approx([2.5])
+    partial, complete = _data(16, 0)
+    dense = np.concatenate([complete, complete[:, ::-1] * 0.999], axis=1)   # 2 N_o target points
+    result = train(TINY, (partial, dense), (partial[:4], dense[:4]), tmp_path, _settings(gamma=1.0))
+    first, second = result.history
+    assert "train_surface" not in first and second["train_surface"] > 0   # lambda = 0, then lambda > 0
+    assert second["val_surface"] > 0

@@ -53,6 +53,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--alpha", type=float, default=1000.0,
                         help="weight of the control-point smooth-L1 term (paper: 1000)")
     parser.add_argument("--beta", type=float, default=0.5, help="weight of the Laplacian shape term (paper: 0.5)")
+    parser.add_argument("--gamma", type=float, default=0.0,
+                        help="weight of the surface term: the unsquared distance of each output point to the nearest "
+                        "ground-truth point, x100 (default 0: the paper's loss)")
+    parser.add_argument("--gt-points", type=int, default=None,
+                        help="points sampled on each ground-truth surface (default: the model's N_o); denser targets "
+                        "make the nearest ground-truth point a closer stand-in for the surface")
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--lr-final", type=float, default=None,
@@ -82,8 +88,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 #: Options a recipe may set (argparse destinations), and their command-line defaults.
 RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "epochs", "generation_epochs", "lam", "alpha", "beta",
-               "batch_size", "lr", "lr_final", "num_control", "config", "init_from", "init_skip", "sampling",
-               "freeze")
+               "gamma", "gt_points", "batch_size", "lr", "lr_final", "num_control", "config", "init_from", "init_skip",
+               "sampling", "freeze")
 RECIPE_DEFAULTS: dict[str, Any] = {}
 _PATH_KEYS = ("meshes", "init_from")
 SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
@@ -219,7 +225,8 @@ def tree_arity_for(n_points: int) -> list[int]:
 def dataset_specs(args: argparse.Namespace, config: GGDConfig, options: SampleOptions
                   ) -> tuple[DatasetSpec, DatasetSpec]:
     """The training and validation data sets of a run (`args`: this command's options after its recipe)."""
-    spec = DatasetSpec(args.samples, args.seed, config.num_input, config.num_output, args.meshes, options=options)
+    spec = DatasetSpec(args.samples, args.seed, config.num_input, args.gt_points or config.num_output, args.meshes,
+                       options=options)
     return spec, dataclasses.replace(spec, n_samples=args.val_samples, seed=args.seed + VALIDATION_SEED_OFFSET)
 
 
@@ -251,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
     val_data = cached_dataset(cache, "val", val_spec, args.workers)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
-                             alpha=args.alpha, beta=args.beta,
+                             alpha=args.alpha, beta=args.beta, gamma=args.gamma,
                              batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
                              device=device, freeze=tuple(args.freeze),
                              time_budget_s=args.time_budget)
