@@ -20,7 +20,7 @@ from gd_completion.datasets.pandaset import PandaSetSequence
 from gd_completion.evaluation.baselines import network_outputs
 from gd_completion.evaluation.fusion_eval import load_frames, vehicle_tracks
 from gd_completion.fusion import FusionLimits, TrackFusion
-from gd_completion.merge import merge_with_fed, merge_with_pool
+from gd_completion.merge import merge_with_pool
 from gd_completion.model.checkpoint import load_model
 from gd_completion.preprocess import Preprocessing
 from gd_completion.registration import align_planar
@@ -66,15 +66,14 @@ def main() -> None:
 
 
 def merge_costs(frames: list, rounds: int) -> None:
-    """The measured merge of each fused partial of the last frame: with its voxel pool (what the pipeline does for
-    a track) against the 512 points fed to the network (what it does for a single frame)."""
+    """The measured merge (`merge_with_pool`) of each fused partial of the last frame, ms per vehicle."""
     fusion = TrackFusion()
     for stamp, vehicles in frames:
         fused = fusion.update(stamp, vehicles)
     model = load_model()
     partials = [np.asarray(v.normalized, np.float32) for v in fused]
-    rows = [resample_indices(len(p), p, model.config.num_input) for p in partials]
-    _, completions = network_outputs(model, np.stack([p[r] for p, r in zip(partials, rows)]),
+    _, completions = network_outputs(model, np.stack([p[resample_indices(len(p), p, model.config.num_input)]
+                                                      for p in partials]),
                                      [v.box.size for v in fused])
     merge_with_pool(completions[0], partials[0])   # compile
     sizes = np.array([len(p) for p in partials])
@@ -85,12 +84,7 @@ def merge_costs(frames: list, rounds: int) -> None:
         for partial, completion in zip(partials, completions):
             merge_with_pool(completion, partial)
         pool = (time.perf_counter() - start) * 1e3 / len(partials)
-        start = time.perf_counter()
-        for partial, completion, fed in zip(partials, completions, rows):
-            merge_with_fed(completion, partial, model.config.num_input, fed)
-        fed_ms = (time.perf_counter() - start) * 1e3 / len(partials)
-        print(f"round {r + 1}: voxel pool {pool:.3f}   the 512 fed points {fed_ms:.3f}   pool / fed "
-              f"{pool / fed_ms:.2f}")
+        print(f"round {r + 1}: {pool:.3f}")
 
 
 if __name__ == "__main__":

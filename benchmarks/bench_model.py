@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gd_completion.merge import merge_with_fed
+from gd_completion.merge import merge_with_pool
 from gd_completion.model import GGDConfig, GGDNet, ggd_loss
 from gd_completion.model.box_refiner import from_frame
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
@@ -154,7 +154,7 @@ def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) ->
             "local MLP": lambda: torch.cat([model.local._features(pg[:, s:s + 1024], x, idx[:, s:s + 1024])
                                             for s in range(0, pg.shape[1], 1024)], 1),
             "G-ResNet": lambda: model.deform(feat, code, knn),
-            "merge": lambda: merge_with_fed(completion, x[0].numpy(), n),
+            "merge": lambda: merge_with_pool(completion, x[0].numpy()),
         }
         if model.refiner is not None:   # its PointNet, the input into its frame and P_g, P_o back (GGDNet.forward)
             def refine() -> None:

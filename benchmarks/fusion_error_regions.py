@@ -70,14 +70,14 @@ def main() -> None:
     p = args.k - 1
     sizes = np.array([t.sizes[p] for t in chosen], np.float64)
     fused, single = [t.fused[p] for t in chosen], [t.single[p] for t in chosen]
-    outputs = {"(a) fused completion": published_outputs(model, fused, sizes, fused=True),
+    outputs = {"(a) fused completion": published_outputs(model, fused, sizes),
                "(c) single-frame completion": published_outputs(model, single, sizes)}
     outputs["network output on the fused partial"] = outputs["(a) fused completion"].completion
     outputs = {name: getattr(o, "published", o) for name, o in outputs.items()}
     for count in (1024, 2048):
         wider = load_checkpoint()[0]
         wider.config = replace(model.config, num_input=count)
-        outputs[f"(a) with {count} fused points fed"] = published_outputs(wider, fused, sizes, fused=True).published
+        outputs[f"(a) with {count} fused points fed"] = published_outputs(wider, fused, sizes).published
     outputs["box fill"] = box_fill(sizes)
     outputs["retrieval (nearest other shape) + fused + mirror"] = np.stack(
         [retrieved(f, s, [e for j, e in library.items() if j != t.instance_id])

@@ -64,9 +64,10 @@ def fps(xyz: np.ndarray, n: int) -> np.ndarray:
     out = np.empty((b, n), np.int64)
     if n == 0:
         return out
+    ones = np.ones(xyz.shape[1], np.float32)
     for c in range(b):
         if np.isfinite(xyz[c]).all():
-            out[c] = _fps_pruned(np.ascontiguousarray(xyz[c]), n, FPS_LEAF)
+            out[c] = _fps_pruned(np.ascontiguousarray(xyz[c]), n, FPS_LEAF, ones)
         else:
             _fps_cloud(xyz[c], n, out[c])
     return out
@@ -116,10 +117,14 @@ def _morton_order(xyz: np.ndarray) -> np.ndarray:
     return order
 
 
-def fps_pruned(xyz: np.ndarray, n: int, leaf: int = FPS_LEAF) -> np.ndarray:
+def fps_pruned(xyz: np.ndarray, n: int, leaf: int = FPS_LEAF, weights: np.ndarray | None = None) -> np.ndarray:
     """Indices (n,) int64 of the farthest point sampling of one finite cloud xyz (M, 3), 1 <= n <= M: the same
     indices as the plain scan `_fps_cloud` (start at point 0, ties to the lowest index, the same float32
     distances).
+
+    `weights` (M,) in (0, 1] (default all 1): a weighted sampling that takes, each step, the point whose squared
+    distance to the chosen ones times its weight is largest. A point of weight w is taken only 1/sqrt(w) times
+    farther from the chosen points than one of weight 1: the weight-1 points end up that much denser.
 
     The points are grouped into leaves of `leaf` consecutive points in Morton order; a leaf is rescanned only
     when the new point is no farther from its bounding box than the leaf's largest current distance. Skipping
@@ -130,23 +135,32 @@ def fps_pruned(xyz: np.ndarray, n: int, leaf: int = FPS_LEAF) -> np.ndarray:
     if xyz.ndim != 2 or xyz.shape[1] != 3 or not 1 <= n <= len(xyz) or leaf < 1:
         raise ValueError(f"fps_pruned: need (M, 3) points, 1 <= n <= M and leaf >= 1; got {xyz.shape}, n={n}, "
                          f"leaf={leaf}")
-    return _fps_pruned(xyz, int(n), min(int(leaf), len(xyz)))   # one leaf at most: its index arithmetic stays small
+    if weights is None:
+        weights = np.ones(len(xyz), np.float32)
+    weights = np.ascontiguousarray(weights, dtype=np.float32)
+    if weights.shape != (len(xyz),) or not ((weights > 0) & (weights <= 1)).all():
+        raise ValueError(f"fps_pruned: weights must be ({len(xyz)},) in (0, 1]")
+    # one leaf at most: its index arithmetic stays small
+    return _fps_pruned(xyz, int(n), min(int(leaf), len(xyz)), weights)
 
 
 @numba.njit(cache=True, nogil=True)
-def _fps_pruned(xyz: np.ndarray, n: int, leaf: int) -> np.ndarray:
+def _fps_pruned(xyz: np.ndarray, n: int, leaf: int, weights: np.ndarray) -> np.ndarray:
     m = xyz.shape[0]
     order = _morton_order(xyz)
     leaves = (m + leaf - 1) // leaf
     px = np.empty(m, np.float32)
     py = np.empty(m, np.float32)
     pz = np.empty(m, np.float32)
+    pw = np.empty(m, np.float32)
     for i in range(m):
-        px[i], py[i], pz[i] = xyz[order[i], 0], xyz[order[i], 1], xyz[order[i], 2]
+        px[i], py[i], pz[i], pw[i] = xyz[order[i], 0], xyz[order[i], 1], xyz[order[i], 2], weights[order[i]]
     lo = np.empty((3, leaves), np.float32)   # per axis, so that the box test below vectorises
     hi = np.empty((3, leaves), np.float32)
+    low_weight = np.empty(leaves, np.float32)   # a leaf's smallest weight: its points' distances are >= that x gap
     for f in range(leaves):
         s, e = f * leaf, min(m, (f + 1) * leaf)
+        low_weight[f] = pw[s:e].min()
         lo[0, f], hi[0, f] = px[s:e].min(), px[s:e].max()
         lo[1, f], hi[1, f] = py[s:e].min(), py[s:e].max()
         lo[2, f], hi[2, f] = pz[s:e].min(), pz[s:e].max()
@@ -171,19 +185,20 @@ def _fps_pruned(xyz: np.ndarray, n: int, leaf: int) -> np.ndarray:
             gx = max(lo[0, f] - cx, zero, cx - hi[0, f])
             gy = max(lo[1, f] - cy, zero, cy - hi[1, f])
             gz = max(lo[2, f] - cz, zero, cz - hi[2, f])
-            gap[f] = (gx * gx + gy * gy + gz * gz) * shrink
+            gap[f] = (gx * gx + gy * gy + gz * gz) * low_weight[f] * shrink
         for f in range(leaves):
             if gap[f] > leaf_max[f]:
                 continue
             # slices indexed from 0 (no negative-index wrap) and integer reductions (the bits of non-negative
             # floats order as the floats; a float max does not reassociate): these loops vectorise
             s, e = f * leaf, min(m, (f + 1) * leaf)
-            lx, ly, lz, ld, lbits, lorder = px[s:e], py[s:e], pz[s:e], mind[s:e], mind_bits[s:e], order[s:e]
+            lx, ly, lz, lw, ld = px[s:e], py[s:e], pz[s:e], pw[s:e], mind[s:e]
+            lbits, lorder = mind_bits[s:e], order[s:e]
             for i in range(ld.shape[0]):
                 dx = lx[i] - cx
                 dy = ly[i] - cy
                 dz = lz[i] - cz
-                d = dx * dx + dy * dy + dz * dz
+                d = (dx * dx + dy * dy + dz * dz) * lw[i]
                 old = ld[i]
                 ld[i] = d if d < old else old
             top = np.int32(-1)

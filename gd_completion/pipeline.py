@@ -22,7 +22,7 @@ from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask, normalize
 from gd_completion.labels import DEFAULT_LABELS, LABEL_IDS
 from gd_completion.limits import FrameLimits, screen_boxes
-from gd_completion.merge import merge_with_fed, merge_with_pool
+from gd_completion.merge import merge_with_pool
 from gd_completion.model.box_refiner import box_from_frame
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
@@ -250,44 +250,40 @@ class VehicleCompleter:
                             ) -> np.ndarray:
         """Complete vehicles given in the normalised box frame, their boxes' sizes (length, width, height)
         beside them (needed by a box-conditioned model); returns (B, num_output, 3) float32 (with
-        `measured_merge`, the merged points of `merge.merge_with_fed`)."""
+        `measured_merge`, the merged points of `merge.merge_with_pool`)."""
         if not len(partials):
             return np.zeros((0, self.num_output, 3), np.float32)
         done = self._complete_all(partials, sizes, self.measured_merge, math.inf, None)
         return np.stack([result[0] for result in done if result is not None])   # no deadline: all are done
 
     def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None, merge: bool,
-                      deadline: float, cancel: threading.Event | None, fused: Sequence[bool] | None = None,
-                      finish_by: bool = False) -> list[VehicleResult | None]:
-        """Each vehicle's (completion, measured rows) in order (`_complete_one`; `fused`: which partials are a
-        track's fused partial, none when None); None for those not started before `deadline` (time.monotonic) or
-        after `cancel` was set. `finish_by`: a vehicle after the first starts only when it is expected to finish
-        by `deadline` (the recent mean time of one vehicle)."""
+                      deadline: float, cancel: threading.Event | None, finish_by: bool = False
+                      ) -> list[VehicleResult | None]:
+        """Each vehicle's (completion, measured rows) in order (`_complete_one`); None for those not started before
+        `deadline` (time.monotonic) or after `cancel` was set. `finish_by`: a vehicle after the first starts only
+        when it is expected to finish by `deadline` (the recent mean time of one vehicle)."""
         if sizes is not None and len(sizes) != len(partials):
             raise ValueError(f"{len(partials)} partial clouds but {len(sizes)} box sizes")
 
-        def one(item: tuple[int, np.ndarray, Sequence[float] | None, bool]) -> VehicleResult | None:
-            index, partial, size, fused = item
+        def one(item: tuple[int, np.ndarray, Sequence[float] | None]) -> VehicleResult | None:
+            index, partial, size = item
             started = time.monotonic()
             expected = self._vehicle_seconds if finish_by and index > 0 else 0.0
             if started + expected > deadline or (cancel is not None and cancel.is_set()):
                 return None
-            result = self._complete_one(partial, size, fused, merge)
+            result = self._complete_one(partial, size, merge)
             self._vehicle_seconds += 0.2 * (time.monotonic() - started - self._vehicle_seconds)
             return result
         run = self._pool.map if self._pool is not None else map
         count = len(partials)
-        return list(run(one, zip(range(count), partials, sizes if sizes is not None else [None] * count,
-                                 fused if fused is not None else [False] * count)))
+        return list(run(one, zip(range(count), partials, sizes if sizes is not None else [None] * count)))
 
-    def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, fused: bool, merge: bool
-                      ) -> VehicleResult:
+    def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, merge: bool) -> VehicleResult:
         """Resample one vehicle to the network's input size (`preprocess.network_input`) and complete it (one
         task of the thread pool): (num_output, 3) float32 points in the normalised frame and, per point, the
-        row of `partial` it copies (-1: generated); with `merge`, merged with the measured points the network
-        saw (`merge.merge_with_fed`) or, for a track's `fused` partial, with one of its points per voxel
-        (`merge.merge_with_pool`), else all generated; and the refined box's frame vector (None without a
-        refiner)."""
+        row of `partial` it copies (-1: generated); with `merge`, merged with a pool of all its measured points
+        (`merge.merge_with_pool`; a single frame's crop or a track's fused partial alike), else all generated;
+        and the refined box's frame vector (None without a refiner)."""
         partial = np.asarray(partial, np.float32).reshape(-1, 3)
         rows = resample_indices(len(partial), partial, self.num_input)
         shape = box_shape([size]).to(self.device) if size is not None else None
@@ -297,8 +293,7 @@ class VehicleCompleter:
             frame = out.box_frame[0].double().cpu().numpy() if out.box_frame is not None else None
         if not merge:
             return completion, np.full(len(completion), -1, np.int64), frame
-        merged = merge_with_pool(completion, partial) if fused else \
-            merge_with_fed(completion, partial, self.num_input, rows)
+        merged = merge_with_pool(completion, partial)
         return merged.points, merged.measured_row, frame
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],
@@ -383,7 +378,6 @@ class VehicleCompleter:
             run_deadline = min(deadline, time.monotonic() + cache.settings.budget_s)
         results = self._complete_all([vehicles[i].normalized for i in due], [vehicles[i].box.size for i in due],
                                      self.measured_merge, run_deadline, cancel,
-                                     [vehicles[i].current_source is not None for i in due],
                                      finish_by=cache is not None and math.isfinite(cache.settings.budget_s))
         ran = dict(zip(due, results))
         cancelled = cancel is not None and cancel.is_set()

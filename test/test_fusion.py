@@ -176,7 +176,7 @@ def test_own_points_keep_their_measured_place_without_include_input_points() -> 
         result = completer.complete_frame(cloud, [box], stamp_ns=k * SECOND // 10)
         (fused,) = twin.update(k * SECOND // 10, completer.prepare(cloud, [box], FrameStats()))
     assert completer.fusion.counters["frames_aligned"] >= 4
-    completion, rows, _ = completer._complete_one(fused.normalized, box.size, True, True)
+    completion, rows, _ = completer._complete_one(fused.normalized, box.size, True)
     own = rows >= len(fused.normalized) - fused.current_rows
     assert own.sum() > 20 and (result.generated == 0).sum() == own.sum()
     published = result.points[own].astype(np.float64)           # the completion's order, own rows in place
@@ -302,10 +302,12 @@ def test_pipeline_completes_a_track_from_its_fused_partial() -> None:
     assert fusion.counters["tracks_alive"] == 1
 
 
-def test_untracked_vehicles_are_merged_as_single_frames() -> None:
-    """With fusion on, a vehicle without a track id is merged with the points fed to the network, as without
-    fusion; a track with its fused partial's voxel pool (also checked by test_own_points_...)."""
+def test_untracked_and_tracked_vehicles_are_merged_with_their_measured_pool() -> None:
+    """With fusion on, a vehicle without a track id is merged with a pool of its own crop, and a track with a pool
+    of its fused partial (the same merge, `merge.merge_with_pool`); both keep more measured points than the network
+    was fed."""
     from gd_completion.geometry import denormalize
+    from gd_completion.merge import merge_with_pool
 
     model = load_model(DEFAULT_WEIGHTS)
     prep = Preprocessing(ground_clearance=0.0)
@@ -317,14 +319,15 @@ def test_untracked_vehicles_are_merged_as_single_frames() -> None:
         assert len(own.measured) > model.config.num_input
         result = completer.complete_frame(points, [tracked], stamp_ns=SECOND)
         partial = own.normalized if not pooled else TrackFusion().update(SECOND, [own])[0].normalized
-        by_rule = {rule: denormalize(completer._complete_one(partial, box.size, rule, True)[0], box)
-                   for rule in (False, True)}
-        assert not np.allclose(by_rule[False], by_rule[True], atol=1e-3)   # the two merges differ here
+        network = completer._complete_one(partial, box.size, False)[0]
+        merged = merge_with_pool(network, partial)
+        assert merged.is_measured.sum() > model.config.num_input
+        expected = denormalize(merged.points, box)
         if not pooled:
-            np.testing.assert_allclose(result.points, by_rule[False], atol=1e-4)
+            np.testing.assert_allclose(result.points, expected, atol=1e-4)
         else:   # a track's own points are published where this frame measured them: compare the others
             generated = result.generated == 1
-            np.testing.assert_allclose(result.points[generated], by_rule[True][generated], atol=1e-4)
+            np.testing.assert_allclose(result.points[generated], expected[generated], atol=1e-4)
 
 
 @pytest.mark.parametrize("include", [True, False])
@@ -347,7 +350,7 @@ def test_merged_measured_points_are_published_once(include: bool, fused_points: 
         vehicle = twin.update(k * SECOND // 10, completer.prepare(points, [box], FrameStats()))[0]
     assert len(track) == 3 and len(np.unique(result.points, axis=0)) == len(result.points)
     # the completion of the last frame, recomputed from the same fused partial (the network is deterministic)
-    completion, rows, _ = completer._complete_one(vehicle.normalized, box.size, True, True)
+    completion, rows, _ = completer._complete_one(vehicle.normalized, box.size, True)
     own_from = 0 if fused_points else len(vehicle.normalized) - vehicle.current_rows   # this frame's: the last rows
     own = rows >= own_from
     expected = denormalize(completion, box).astype(np.float32)

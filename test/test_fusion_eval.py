@@ -99,8 +99,8 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
             # the library oracle only at k = 5: the other chosen stationary vehicle's points beside the fused points
             assert math.isfinite(r.library_oracle) == (k == fusion_eval.RATIO_FRAMES)
             assert r.prior_fused > 0 and r.prior_single > 0 and math.isfinite(r.prior_ratio)
-    # one frame fused: the fused partial is that frame (TrackFusion voxel-thins it), both completions agree but
-    # for the measured merge (the fused partial's voxel pool against the points fed to the network)
+    # one frame fused: the fused partial is that frame (TrackFusion voxel-thins it), so both completions agree but
+    # for that thinning
     assert rows[1].fused_completion_single == pytest.approx(rows[1].single_completion, rel=0.1)
     assert rows[1].ratio == pytest.approx(1.0, rel=0.1)
     tolerance = 1e-5 if factory is ConcatFusion else 0.1
@@ -128,23 +128,22 @@ def test_fusion_evaluation_on_a_few_pandaset_frames(shared_data, factory):
     assert math.isfinite(stationary.single_network) and stationary.single_network != stationary.single
 
 
-def test_fused_partials_are_scored_as_the_pipeline_merges_them(shared_data, monkeypatch):
+def test_fused_and_single_partials_are_both_scored_through_the_published_merge(shared_data, monkeypatch):
     root = shared_data / "pandaset-002"
     if not root.is_dir():
         pytest.skip(f"{root} not found")
     calls = []
     scored = fusion_eval.published_outputs
 
-    def recording(model, partials, sizes=None, max_batch=32, fused=False):
-        calls.append((fused, len(partials)))
-        return scored(model, partials, sizes, max_batch=max_batch, fused=fused)
+    def recording(model, partials, sizes=None, max_batch=32):
+        calls.append(len(partials))
+        return scored(model, partials, sizes, max_batch=max_batch)
 
     monkeypatch.setattr(fusion_eval, "published_outputs", recording)
     torch.manual_seed(0)
     fusion_eval.evaluate_fusion(GGDNet(TINY).eval(), root, frames=range(0, 3), max_frames=3, consistency_frames=2,
                                 max_vehicles=1, reference_points=256)
-    assert sorted(fused for fused, _ in calls) == [False, True]   # once the fused partials, once the frames alone
-    assert all(count > 0 for _, count in calls)
+    assert len(calls) == 2 and all(count > 0 for count in calls)   # the fused partials, then the frames alone
 
 
 def test_fusion_section_text():

@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from gd_completion.kernels import FPS_LEAF, _fps_cloud, _morton_order, fps, fps_pruned
-from gd_completion.merge import FUSED_POOL_VOXEL, merge_measured, merge_with_fed, merge_with_pool, mirrored
-from gd_completion.preprocess import network_input
+from gd_completion.merge import MIRROR_WEIGHT, POOL_VOXEL, merge_measured, merge_with_pool, mirrored
 from gd_completion.sampling import resample_indices, voxel_first_indices
 
 
@@ -110,20 +109,51 @@ def test_merge_keeps_dense_measurements_and_fills_the_rest():
     assert len(np.unique(points, axis=0)) == 2048                  # farthest point sampling: no repeats
 
 
-def test_merge_with_fed_rows_index_the_partial():
-    rng = np.random.default_rng(1)
-    completion = rng.uniform(-0.5, 0.5, (256, 3)).astype(np.float32)
-    sparse = rng.uniform(-0.3, 0.3, (60, 3)).astype(np.float32)   # fewer than the input size: every row fed once
-    merged = merge_with_fed(completion, sparse, 128)
-    assert merged.points.shape == (256, 3) and 0 < merged.is_measured.sum() <= 60
-    assert np.array_equal(merged.points[merged.is_measured], sparse[merged.measured_row[merged.is_measured]])
-    dense = rng.uniform(-0.3, 0.3, (2000, 3)).astype(np.float32)
-    fed = network_input(dense, 128)
-    merged = merge_with_fed(completion, dense, 128)
+def _plain_weighted_fps(xyz: np.ndarray, n: int, weights: np.ndarray) -> np.ndarray:
+    """The weighted scan written out: float32 squared distances times the weights, ties to the lowest index."""
+    xyz, weights = xyz.astype(np.float32), weights.astype(np.float32)
+    dist = np.full(len(xyz), np.inf, np.float32)
+    out = [0]
+    for _ in range(n - 1):
+        d = ((xyz - xyz[out[-1]]) ** 2).sum(1, dtype=np.float32) * weights
+        dist = np.minimum(dist, d)
+        out.append(int(np.argmax(dist)))
+    return np.array(out)
+
+
+@pytest.mark.parametrize(("m", "n", "leaf"), [(500, 300, 32), (3000, 2048, 64), (800, 800, 7)])
+def test_weighted_pruned_fps_returns_the_weighted_scan(m, n, leaf):
+    rng = np.random.default_rng(m + 1)
+    xyz = (rng.random((m, 3)) * np.array([1.0, 0.4, 0.35])).astype(np.float32)
+    weights = rng.choice(np.array([1.0, 0.5, 0.25], np.float32), m)
+    assert np.array_equal(fps_pruned(xyz, n, leaf, weights), _plain_weighted_fps(xyz, n, weights))
+    assert np.array_equal(fps_pruned(xyz, n, leaf, np.ones(m, np.float32)), _plain_fps(xyz, n))
+    for bad in (np.zeros(m), np.full(m, 1.5), np.ones(m - 1), np.full(m, np.nan)):
+        with pytest.raises(ValueError, match="weights"):
+            fps_pruned(xyz, n, leaf, bad)
+
+
+def test_a_densely_seen_side_keeps_its_measurements_at_twice_the_density():
+    """A side seen by 6,000 points, the other side covered by their mirror image and the network: the weighted merge
+    keeps about 1 / MIRROR_WEIGHT (2) times as many points per area on the seen side as on the other, all of them
+    exact copies of measured rows, so the measured points lie nearer the output than after an even (unweighted)
+    thinning of the same union (mean squared distance)."""
+    rng = np.random.default_rng(4)
+    side = np.stack([rng.uniform(-0.5, 0.5, 6000), np.full(6000, 0.2), rng.uniform(-0.15, 0.15, 6000)],
+                    1).astype(np.float32)
+    completion = np.stack([rng.uniform(-0.5, 0.5, 2048), rng.choice([-0.2, 0.2], 2048),
+                           rng.uniform(-0.15, 0.15, 2048)], 1).astype(np.float32)
+    merged = merge_with_pool(completion, side)
     kept = merged.measured_row[merged.is_measured]
-    assert 0 < len(kept) <= 128 and np.isin(dense[kept].view("f4,f4,f4"), fed.view("f4,f4,f4")).all()
-    assert np.array_equal(merged.points[merged.is_measured], dense[kept])
-    assert np.array_equal(mirrored(fed)[:, 1], -fed[:, 1])
+    assert np.array_equal(merged.points[merged.is_measured], side[kept])
+    unseen = np.abs(merged.points[:, 1] + 0.2) < 1e-6
+    ratio = merged.is_measured.sum() / unseen.sum()   # seen side (measured) against the other (mirror or network)
+    assert 0.8 / MIRROR_WEIGHT <= ratio <= 1.2 / MIRROR_WEIGHT
+    pool = side[voxel_first_indices(side, POOL_VOXEL)]
+    union = np.concatenate([pool, mirrored(pool), completion])
+    even = union[fps_pruned(union, 2048)]
+    gap = lambda out: ((side[:, None] - out[None]) ** 2).sum(-1).min(1).mean()   # noqa: E731
+    assert gap(merged.points) < 0.75 * gap(even)
 
 
 def test_merge_with_pool_keeps_one_fused_point_per_voxel_and_stays_put_as_frames_arrive():
@@ -133,14 +163,15 @@ def test_merge_with_pool_keeps_one_fused_point_per_voxel_and_stays_put_as_frames
                                rng.uniform(-0.15, 0.15, m)], 1).astype(np.float32)
     fused = side(6000)                 # a track's fused partial: far more points than the network's 512
     merged = merge_with_pool(completion, fused)
-    pool = voxel_first_indices(fused, FUSED_POOL_VOXEL)
+    pool = voxel_first_indices(fused, POOL_VOXEL)
     kept = merged.measured_row[merged.is_measured]
     assert np.array_equal(merged.points[merged.is_measured], fused[kept])   # exact copies, rows into the partial
     fed_rows = resample_indices(len(fused), fused, 512)                       # what the network saw
     assert len(pool) > 512 and np.isin(kept, pool).all() and not np.isin(kept, fed_rows).all()
+    assert len(kept) > 512            # more measured points than the network was fed
     # a new frame appended (the partial lists the oldest frame first): the old voxels keep their point
     grown = np.concatenate([fused, side(3000)])
-    np.testing.assert_array_equal(voxel_first_indices(grown, FUSED_POOL_VOXEL)[:len(pool)], pool)
+    np.testing.assert_array_equal(voxel_first_indices(grown, POOL_VOXEL)[:len(pool)], pool)
 
 
 @pytest.mark.parametrize("scale", [0.01, 1.0, 40.0, 1e6, 1e13])

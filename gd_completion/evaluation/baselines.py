@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from gd_completion.merge import merge_with_fed, merge_with_pool, mirrored
+from gd_completion.merge import merge_with_pool, mirrored
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.sampling import resample_indices
 
@@ -125,14 +125,13 @@ class NetworkOutputs:
 
 
 def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
-                      sizes: np.ndarray | Sequence[Sequence[float]] | None = None, max_batch: int = 32,
-                      fused: bool = False) -> NetworkOutputs:
-    """`network_outputs` of partial clouds of any size and their completions after the measured merge with the
-    points each partial fed the network (`merge.merge_with_fed`, the rows of its one resampling) or, for tracks'
-    `fused` partials, with one of their points per voxel (`merge.merge_with_pool`), as the pipeline does."""
+                      sizes: np.ndarray | Sequence[Sequence[float]] | None = None, max_batch: int = 32
+                      ) -> NetworkOutputs:
+    """`network_outputs` of partial clouds of any size and their completions after the measured merge with a pool
+    of all their measured points (`merge.merge_with_pool`), as the pipeline does for single frames and tracks'
+    fused partials alike."""
     partials = [np.asarray(p, np.float32).reshape(-1, 3) for p in partials]
-    batch, rows = _resampled(partials, model.config.num_input)
+    batch = _resampled(partials, model.config.num_input)[0]
     generated, completion = network_outputs(model, batch, sizes, max_batch=max_batch)
-    merged = [(merge_with_pool(c, p) if fused else merge_with_fed(c, p, model.config.num_input, r)).points
-              for p, c, r in zip(partials, completion, rows)]
+    merged = [merge_with_pool(c, p).points for p, c in zip(partials, completion)]
     return NetworkOutputs(generated, completion, np.stack(merged) if merged else completion.copy())

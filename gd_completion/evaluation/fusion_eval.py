@@ -316,7 +316,7 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     # (the published completion: the network's after the measured merge, as the pipeline gives it)
     fused_in = [chosen[i].fused[p] for i, p in fused_keys]
     fused = published_outputs(model, fused_in, np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(-1, 3),
-                              max_batch=max_batch, fused=True)
+                              max_batch=max_batch)
     single_in = [chosen[i].single[p] for i, p in single_keys]
     single = published_outputs(model, single_in, np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(
         -1, 3), max_batch=max_batch)

@@ -14,7 +14,7 @@ from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_senso
 from gd_completion.errors import DataFormatError
 from gd_completion.geometry import Box3D, box_problem, finite_mask, normalize
 from gd_completion.model.network import GGDNet
-from gd_completion.preprocess import Preprocessing, crop_vehicles
+from gd_completion.preprocess import Preprocessing, above_ground, crop_vehicles
 
 from .baselines import BASELINE_NAMES, mirror_symmetry, published_outputs
 from .box_noise import BoxNoise, noisy_box, reframe
@@ -67,12 +67,20 @@ class VehicleTrack:
     sensors: list[int] = field(default_factory=list)  # PandaSet sensor id per entry
     origins: list[np.ndarray] = field(default_factory=list)  # world sensor position (poses.json) per entry
     noisy: list[tuple[np.ndarray, Box3D] | None] = field(default_factory=list)  # (normalised points, noisy box)
+    in_box: list[np.ndarray] = field(default_factory=list)  # normalised (M', 3) per entry: every in-box point,
+    # the ground band (the lowest `ground_clearance` of the box) included
 
     def aggregate(self) -> np.ndarray:
         """All entries' points in the box frame (normalised), (sum M, 3) float32."""
         if not self.points:
             return np.zeros((0, 3), np.float32)
         return np.concatenate(self.points).astype(np.float32, copy=False)
+
+    def aggregate_in_box(self) -> np.ndarray:
+        """All entries' in-box points, ground band included (normalised), (sum M', 3) float32."""
+        if not self.in_box:
+            return np.zeros((0, 3), np.float32)
+        return np.concatenate(self.in_box).astype(np.float32, copy=False)
 
     def input_frames(self, min_points: int = MIN_INPUT_POINTS, max_frames: int | None = None) -> list[int]:
         """Positions (into `frames`) with >= `min_points` points; at most `max_frames`, evenly spaced."""
@@ -118,7 +126,8 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
     Points and cuboids are both in the world frame, so each frame's world box takes its points into the
     box frame; the uuid links frames; a sensor uses the cuboids with sensor id -1 or its own. Frames without
     a lidar file are skipped. With `noise`, entries with >= `noise_min_points` points are cropped again with
-    a noisy box (`box_noise.noisy_box`, key (track id, frame, sensor)); None where that crop is empty.
+    a noisy box (`box_noise.noisy_box`, key (track id, frame, sensor)); None where that crop is empty. Every
+    entry also keeps all its in-box points, the ground band below `prep.ground_clearance` included (`in_box`).
     """
     tracks = {uuid: VehicleTrack(uuid, sequence.track_ids.get(uuid, 0), label) for uuid, label in vehicles.items()}
     by_id = {t.instance_id: t for t in tracks.values()}
@@ -138,6 +147,8 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
             points = arrays["xyz"][arrays["sensor"] == sensor]
             points = points[finite_mask(points)]
             cropped = crop_vehicles(points, boxes, prep)[0]
+            in_box = {v.box.instance_id: v.normalized
+                      for v in crop_vehicles(points, boxes, replace(prep, ground_clearance=0.0, min_points=1))[0]}
             noisy: dict[int, tuple[np.ndarray, Box3D]] = {}
             if noise is not None:
                 shaken = [noisy_box(v.box, noise, (v.box.instance_id, index, sensor)) for v in cropped
@@ -151,7 +162,14 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
                 track.sensors.append(int(sensor))
                 track.origins.append(np.asarray(origin, np.float64))
                 track.noisy.append(noisy.get(vehicle.box.instance_id))
+                track.in_box.append(in_box[vehicle.box.instance_id])
     return tracks
+
+
+def in_ground_band(normalized: np.ndarray, box: Box3D, ground_clearance: float) -> np.ndarray:
+    """Bool (M,): normalised points in the box's lowest `ground_clearance` metres (those the crop's ground cut drops:
+    tyres, wheel arches, and the road)."""
+    return ~above_ground(normalized, box, ground_clearance)
 
 
 def placement_floor(reference: np.ndarray, perfect: np.ndarray, placed_by: Box3D, true_box: Box3D) -> float:
@@ -201,7 +219,9 @@ def random_reference(points: np.ndarray, n: int = RANDOM_REFERENCE_POINTS, seed:
 class PandaSetItem:
     """One (vehicle, frame, sensor) observation: input size and, per method, the scaled metrics.
 
-    coverage: random reference; coverage_voxel: voxel-uniform reference; noisy_coverage: the box-noise run
+    coverage: random reference; coverage_voxel: voxel-uniform reference; coverage_band: random reference of every
+    in-box point, ground band included, and band_coverage its points in the band only (NaN where it has none);
+    fidelity_band: every in-box point of the frame, band included, to the output; noisy_coverage: the box-noise run
     (random reference, clean box's frame; NaN when the noisy crop was empty); precision, judged, recall,
     f_score: the two-sided metric of `observed` (fractions); placement_floor: `placement_floor` of the exact and
     the noisy box (box-noise run only)."""
@@ -220,6 +240,9 @@ class PandaSetItem:
     recall: dict[str, float] = field(default_factory=dict)
     f_score: dict[str, float] = field(default_factory=dict)
     noisy_coverage: dict[str, float] = field(default_factory=dict)
+    coverage_band: dict[str, float] = field(default_factory=dict)   # reference with the ground band (random)
+    band_coverage: dict[str, float] = field(default_factory=dict)   # that reference's ground-band points only
+    fidelity_band: dict[str, float] = field(default_factory=dict)   # every in-box point of the frame -> output
     output_points: dict[str, int] = field(default_factory=dict)
     placement_floor: tuple[float, float] | None = None   # (exact box, noisy box): see `placement_floor`
 
@@ -272,6 +295,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     notes: list[str] = []
     meta: list[tuple[VehicleTrack, int]] = []
     refs: dict[str, tuple[np.ndarray, np.ndarray, RangeImages]] = {}
+    band_refs: dict[str, np.ndarray] = {}
     perfect: dict[str, np.ndarray] = {}
     single_frame = 0
     for track in tracks.values():
@@ -285,6 +309,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
         aggregate = track.aggregate()
         refs[track.uuid] = (random_reference(aggregate, random_points, seed=track.instance_id), voxel,
                             range_images(track.pose_scans()))
+        band_refs[track.uuid] = random_reference(track.aggregate_in_box(), random_points, seed=track.instance_id)
         if noise is not None:   # a perfect completion: the aggregate itself (another random sample of it)
             perfect[track.uuid] = random_reference(aggregate, model.config.num_output, seed=track.instance_id + 1)
         meta += [(track, k) for k in picks]
@@ -323,6 +348,11 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             item.precision[name], item.judged[name] = two.precision, two.judged_share
             item.recall[name], item.f_score[name] = two.recall, two.f_score
             item.output_points[name] = len(out)
+            to_band = nearest_sq(band_refs[track.uuid], out)
+            item.coverage_band[name] = float(to_band.mean()) * COVERAGE_SCALE
+            low = in_ground_band(band_refs[track.uuid], box, prep.ground_clearance)
+            item.band_coverage[name] = float(to_band[low].mean()) * COVERAGE_SCALE if low.any() else math.nan
+            item.fidelity_band[name] = float(nearest_sq(track.in_box[k], out).mean()) * FIDELITY_SCALE
         if i in noisy_nets:
             noisy_partial, shaken = track.noisy[k]  # type: ignore[misc]  # k is in noisy_nets: not None
             shaken_outputs = _method_outputs(noisy_partial, shaken.size, n_out, *noisy_nets[i])

@@ -1,0 +1,98 @@
+"""Measured-merge variants on PandaSet-002's reduced protocol (at most 8 observations per vehicle, both sensors,
+exact boxes): coverage error and fidelity x1e3, overall and per input-size bucket, of the network's completions
+merged in several ways, beside the network alone and the mirror + template prior.
+
+    python benchmarks/merge_variants.py [--model PT] [--pandaset DIR] [--variants SPEC ...]
+
+A SPEC is `pool:VOXEL:NETWORK_WEIGHT:MIRROR_WEIGHT` (one measured point per VOXEL voxel, 0: all of them; the
+weights of the weighted FPS, `kernels.fps_pruned`) or `fed` (the 512 points fed to the network, unweighted: the
+merge before model v3). The shipped merge is `merge.merge_with_pool` (printed as "shipped")."""
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from gd_completion.datasets.pandaset import PandaSetSequence
+from gd_completion.evaluation import pandaset_eval as pe
+from gd_completion.evaluation.baselines import _resampled, network_outputs
+from gd_completion.evaluation.nearest import nearest_sq
+from gd_completion.evaluation.priors import prior_outputs
+from gd_completion.kernels import fps_pruned
+from gd_completion.merge import merge_with_pool, mirrored
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.preprocess import Preprocessing
+from gd_completion.sampling import voxel_first_indices
+
+# (completion, partial, rows fed to the network, box size) -> output points
+Merge = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+def weighted(voxel: float, network: float, mirror: float) -> Merge:
+    def merge(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray) -> np.ndarray:
+        pool = partial[voxel_first_indices(partial, voxel)] if voxel else partial
+        union = np.ascontiguousarray(np.concatenate([pool, mirrored(pool), completion]), np.float32)
+        weights = np.full(len(union), network, np.float32)
+        weights[:len(pool)], weights[len(pool):2 * len(pool)] = 1.0, mirror
+        return union[fps_pruned(union, len(completion), weights=weights)]
+    return merge
+
+
+def fed_only(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray) -> np.ndarray:
+    pool = partial[fed[:min(len(partial), len(fed))]]
+    union = np.ascontiguousarray(np.concatenate([pool, mirrored(pool), completion]), np.float32)
+    return union[fps_pruned(union, len(completion))]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", default=str(DEFAULT_WEIGHTS))
+    parser.add_argument("--pandaset", default="../shared/data/pandaset-002")
+    parser.add_argument("--variants", nargs="*", default=["fed", "pool:0.02:1:1", "pool:0:0.5:1", "pool:0:0.1:1",
+                                                          "pool:0.01:0.25:0.5", "pool:0.01:0.3:0.6"])
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    model = load_model(args.model)
+    sequence = PandaSetSequence(args.pandaset)
+    tracks = pe.collect_tracks(sequence, pe.stationary_vehicles(sequence, pe.SENSORS),
+                               replace(Preprocessing(), min_points=1), sensors=pe.SENSORS)
+    observations = []
+    for track in tracks.values():
+        picks = track.input_frames(pe.MIN_INPUT_POINTS, 8)
+        if picks and len(set(track.frames)) > 1:
+            reference = pe.random_reference(track.aggregate(), pe.RANDOM_REFERENCE_POINTS, seed=track.instance_id)
+            observations += [(track.points[k], np.array(track.boxes[k].size), reference) for k in picks]
+    batch, rows = _resampled([o[0] for o in observations], model.config.num_input)
+    completions = network_outputs(model, batch, np.array([o[1] for o in observations]))[1]
+    merges: dict[str, Merge] = {
+        "network alone": lambda c, p, r, s: c,
+        "mirror + template": lambda c, p, r, s: prior_outputs(p, s, len(c))["mirror_template"],
+        "shipped": lambda c, p, r, s: merge_with_pool(c, p).points}
+    for spec in args.variants:
+        kind, *values = spec.split(":")
+        merges[spec] = fed_only if kind == "fed" else weighted(*(float(v) for v in values))
+    bins = [name for name, *_ in pe.SIZE_BINS]
+    print(f"{len(observations)} observations; coverage x1e3 all / {' / '.join(bins)} | fidelity x1e3 the same | "
+          "ms per vehicle")
+    for name, merge in merges.items():
+        coverage, fidelity, where = [], [], []
+        spent = 0.0
+        for (partial, size, reference), completion, fed in zip(observations, completions, rows):
+            start = time.perf_counter()
+            out = merge(completion, partial, fed, size)
+            spent += time.perf_counter() - start
+            coverage.append(nearest_sq(reference, out).mean() * 1e3)
+            fidelity.append(nearest_sq(partial, out).mean() * 1e3)
+            where.append(pe.size_bin(len(partial)))
+        cov, fid, at = np.array(coverage), np.array(fidelity), np.array(where)
+        print(f"{name:20s} {cov.mean():.3f} " + " ".join(f"{cov[at == b].mean():.3f}" for b in bins)
+              + f" | {fid.mean():.3f} " + " ".join(f"{fid[at == b].mean():.3f}" for b in bins)
+              + f" | {1e3 * spent / len(observations):.2f}")
+
+
+if __name__ == "__main__":
+    main()
