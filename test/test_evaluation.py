@@ -262,7 +262,8 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
                               "--pandaset", str(shared_data / "pandaset-002"), "--max-vehicles", "2",
                               "--max-frames-per-vehicle", "2", "--threads", "1", "--fusion-max-vehicles", "1",
                               "--heldout-mesh-samples", "2", "--random-reference-points", "2000",
-                              "--fusion-max-frames", "3", "--fusion-consistency-frames", "3", "--reuse-frames", "4"])
+                              "--fusion-max-frames", "3", "--fusion-consistency-frames", "3", "--reuse-frames", "4",
+                              "--no-classification"])   # test_classification runs that part
     assert args.func(args) == 0
     assert seen == {"n": 2, "seed": synthetic.EVAL_SEED}
     text = (out / "report.md").read_text()
@@ -284,7 +285,15 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     assert "## Held-out meshes" in text and "held-out meshes of vehicle-meshes" in text
     pandaset = text.split("## PandaSet 002: single")[1].split("## PandaSet 002: track fusion")[0]
     pandaset_rows = [line for line in pandaset.splitlines() if line.startswith("| raw input")]
-    assert len(pandaset_rows) == 6   # random and voxel coverage, fidelity, two-sided, by sensor, box noise
+    # random and voxel coverage, fidelity, ground band kept (coverage, the band alone, fidelity), two-sided, by
+    # sensor, box noise
+    assert len(pandaset_rows) == 9
+    band = pandaset.split("### Ground band kept: coverage")[1].split("### Ground band kept: fidelity")[0]
+    band_fidelity = pandaset.split("### Ground band kept: fidelity")[1].split("###")[0]
+    raw_band = [cells(line) for line in band_fidelity.splitlines() if line.startswith("| raw input")][0]
+    assert float(raw_band[1]) > 0.0    # the band's points are not in the ground-cut input
+    band_rows = [cells(line) for line in band.splitlines() if line.startswith("| raw input")]
+    assert float(band_rows[1][1]) > float(band_rows[0][1])   # the band alone is covered worse than the whole
     oracle = [cells(line) for line in pandaset.splitlines() if line.startswith("| (oracle)")]
     assert len(oracle) == 1 and float(oracle[0][1]) < float(oracle[0][2])   # the noisy box misplaces it
     fidelity_rows = [line for line in pandaset.split("### Fidelity")[1].splitlines() if line.startswith("| ")]
@@ -308,7 +317,8 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     from gd_completion.evaluation.synthetic import EVAL_SEED, load_heldout
     from gd_completion.synth import dataset
 
-    partial, complete, source, surface, sizes = load_heldout(2)
+    partial, complete, source, surface, sizes, meshes = load_heldout(2)
+    assert len(meshes) == 2 and all(v.shape[1] == 3 and f.shape[1] == 3 for v, f in meshes)
     assert partial.shape == (2, 1024, 3) and complete.shape == (2, 2048, 3) and surface.shape == (2, 2048, 3)
     assert str(EVAL_SEED) in source
     # the second surface sample is another sample of the same shape, not a copy, and leaves the pair unchanged
@@ -323,8 +333,9 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     training = dataset.build_dataset(2, 0)
     assert not np.allclose(training["complete"], complete)  # evaluation shapes are not the seed-0 shapes
     path = dataset.save_dataset(tmp_path / "heldout.npz", dataset.build_dataset(3, EVAL_SEED + 1))
-    p2, c2, source2, surface2, sizes2 = load_heldout(2, path=path)
+    p2, c2, source2, surface2, sizes2, meshes2 = load_heldout(2, path=path)
     assert p2.shape == (2, 1024, 3) and c2.shape == (2, 2048, 3) and "heldout.npz" in source2 and surface2 is None
+    assert meshes2 is None   # a file holds no meshes
     assert sizes2.shape == (2, 3) and np.all(sizes2[:, 0] > sizes2[:, 1])  # (length, width, height) of the set
     data = dataset.load_dataset(path)
     del data["size"]
@@ -332,6 +343,34 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     from gd_completion.errors import EvaluationError
     with pytest.raises(EvaluationError, match="no per-sample box sizes"):
         load_heldout(2, path=tmp_path / "nosize.npz")
+
+
+def test_evaluate_synthetic_on_the_true_mesh(shared_data):
+    from gd_completion.evaluation.report import synthetic_section
+    from gd_completion.evaluation.synthetic import SYNTHETIC_METRICS, evaluate_synthetic, load_heldout_meshes
+
+    held = load_heldout_meshes(3, shared_data / "vehicle-meshes", seed=5)
+    torch.manual_seed(0)
+    model = GGDNet(TINY).eval()
+    result = evaluate_synthetic(model, held.partial, held.complete, held.sizes, surface=held.surface,
+                                meshes=held.meshes)
+    for name, m in result.metrics.items():
+        assert set(m) == set(SYNTHETIC_METRICS), name
+        assert 0.0 <= m["far"] <= 1.0 - m["on_surface"] + 1e-12, name
+    assert result.floor is not None
+    assert result.floor["on_surface"] == 1.0 and result.floor["far"] == 0.0   # drawn on the mesh
+    assert result.metrics["input"]["on_surface"] > 0.95   # scan returns: on the surface, up to sensor noise
+    assert result.metrics["box_fill"]["on_surface"] < 0.7 and result.metrics["box_fill"]["far"] > 0.2
+    text = synthetic_section(result)
+    header = [line for line in text.splitlines() if line.startswith("| method")][0]
+    assert header.rstrip(" |").endswith("| on surface | far")
+    assert "on surface: share of output points within 0.02 (2 % of the length) of the true mesh" in text
+    assert "on surface 1.000 (1 by construction" in text and "Not measured here" not in text
+    # without the meshes the columns are empty and the report says why
+    bare = evaluate_synthetic(model, held.partial, held.complete, held.sizes, surface=held.surface)
+    assert np.isnan(bare.metrics["ggd"]["on_surface"]) and np.isnan(bare.floor["far"])
+    assert bare.metrics["ggd"]["cd"] == result.metrics["ggd"]["cd"]
+    assert "Not measured here ('-')" in synthetic_section(bare)
 
 
 def test_placement_floor_hand_computed():
@@ -361,6 +400,7 @@ def test_heldout_mesh_set_draws_only_the_heldout_meshes(shared_data, tmp_path):
     np.testing.assert_array_equal(held.complete, data["complete"])
     np.testing.assert_array_equal(held.sizes, np.asarray(data["size"], np.float64))
     assert held.surface.shape == held.complete.shape and "held-out meshes of vehicle-meshes" in held.source
+    assert held.meshes is not None and len(held.meshes) == 3
     with pytest.raises(EvaluationError, match="held-out meshes"):
         load_heldout_meshes(1, tmp_path)
 

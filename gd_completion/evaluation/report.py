@@ -13,6 +13,7 @@ from gd_completion.render import render_vehicles
 
 from .baselines import BASELINE_NAMES, BASELINE_TITLES
 from .fusion_eval import RATIO_FRAMES, FusionResult
+from .mesh_distance import FAR_FROM_SURFACE, NEAR_SURFACE
 from .metrics import OBSERVED_RADIUS
 from .observed import OBSERVED_DEFINITION, TAU
 from .pandaset_eval import SENSOR_NAMES, SIZE_BINS, PandaSetItem, PandaSetResult
@@ -34,17 +35,26 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> 
 
 
 def synthetic_section(result: SyntheticResult, title: str = "Synthetic held-out set") -> str:
-    """Table of CD x1e4, CD(D,G), CD(G,D), F-score@1% and Fidelity x1e3 per method on a held-out synthetic set."""
+    """Table of CD x1e4, CD(D,G), CD(G,D), F-score@1%, Fidelity x1e3 and the shares on / far from the true mesh
+    per method on a held-out synthetic set."""
+    nan = float("nan")
     rows = [[BASELINE_TITLES[n], result.metrics[n]["cd"], result.metrics[n]["cd_dg"], result.metrics[n]["cd_gd"],
-             result.metrics[n]["f_score"], result.metrics[n]["fidelity"]] for n in BASELINE_NAMES]
+             result.metrics[n]["f_score"], result.metrics[n]["fidelity"], result.metrics[n].get("on_surface", nan),
+             result.metrics[n].get("far", nan)] for n in BASELINE_NAMES]
+    measured = any(not math.isnan(result.metrics[n].get("on_surface", nan)) for n in BASELINE_NAMES)
     sizes = ", ".join(f"{BASELINE_TITLES[n]} {result.points[n]}" for n in BASELINE_NAMES if n in result.points)
     return (f"## {title}\n\n{result.n_samples} pairs from {result.source}, ground truth of "
             f"{result.n_gt} points; normalised frame (vehicle length = 1). Output points: {sizes}.\n\n"
-            + markdown_table(["method", "CD x1e4", "CD(D,G) x1e4", "CD(G,D) x1e4", "F-score@1%", "Fidelity x1e3"],
-                             rows)
+            + markdown_table(["method", "CD x1e4", "CD(D,G) x1e4", "CD(G,D) x1e4", "F-score@1%", "Fidelity x1e3",
+                              "on surface", "far"], rows)
             + "\n\nCD(D,G): output -> ground truth (fidelity-like); CD(G,D): ground truth -> output (completeness); "
             "F-score@1%: harmonic mean of the fractions of output and ground-truth points within 0.01 (1 % of "
             "the vehicle length) of the other cloud."
+            + f"\n\non surface: share of output points within {NEAR_SURFACE} ({100 * NEAR_SURFACE:.0f} % of the "
+            "length) of the true mesh surface (exact point-to-triangle distance); far: beyond "
+            f"{FAR_FROM_SURFACE}; the raw input's are those of its points."
+            + ("" if measured else " Not measured here ('-'): the pairs come without their meshes (a prebuilt set "
+               "read from a file).")
             + floor_text(result) + "\n\n" + region_section(result, title))
 
 
@@ -56,11 +66,20 @@ def floor_text(result: SyntheticResult) -> str:
     gen, ggd = result.metrics["generation"]["cd"], result.metrics["ggd"]["cd"]
     return (f"\n\nMetric floor: a second uniform {result.n_gt}-point sample of the true surface scores CD {floor:.3f} "
             f"(CD(D,G) {result.floor['cd_dg']:.3f}, CD(G,D) {result.floor['cd_gd']:.3f}, F-score@1% "
-            f"{result.floor.get('f_score', float('nan')):.3f}) against the ground truth: "
+            f"{result.floor.get('f_score', float('nan')):.3f}) against the ground truth{_mesh_floor(result.floor)}: "
             f"that is what a perfect completion scores at this sampling density. Above the floor, generation only "
             f"{gen - floor:.3f} and GGD-Net {ggd - floor:.3f}: the deformation removes "
             f"{100 * (1 - (ggd - floor) / (gen - floor)) if gen > floor else float('nan'):.0f} % of the generation "
             f"branch's excess error (CD itself: {100 * (1 - ggd / gen):.1f} % lower).")
+
+
+def _mesh_floor(floor: dict[str, float]) -> str:
+    """The perfect sample's shares on / far from the true mesh ('' when not measured)."""
+    on, far = floor.get("on_surface", math.nan), floor.get("far", math.nan)
+    if math.isnan(on):
+        return ""
+    return (f", and on the true mesh: on surface {on:.3f} (1 by construction: its points are drawn on the mesh), "
+            f"far {far:.3f}")
 
 
 def region_section(result: SyntheticResult, title: str = "") -> str:
@@ -141,6 +160,15 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
                  f"0.01 voxel first)\n\n" + _metric_table(items, "coverage_voxel"))
     parts.append("### Fidelity x1e3 (all in-box points above the ground cut of the frame -> output)\n\n"
                  + _metric_table(items, "fidelity"))
+    parts.append("### Ground band kept: coverage error x1e3, exact box, every in-box point in the reference\n\n"
+                 "The same observations and outputs; the reference is a random sample "
+                 f"({result.random_points:,} points) of every in-box point of every frame and sensor, the lowest "
+                 "0.1 m of the box (tyres, wheel arches and the road under them, which the crop's ground cut drops "
+                 "from the inputs) included.\n\n" + _metric_table(items, "coverage_band")
+                 + "\n\nThat reference's ground-band points alone (coverage error x1e3 of the band; observations "
+                 "whose reference has band points):\n\n" + _metric_table(items, "band_coverage"))
+    parts.append("### Ground band kept: fidelity x1e3 (every in-box point of the frame, band included -> output)\n\n"
+                 + _metric_table(items, "fidelity_band"))
     groups = _groups(items)
     rows = [[BASELINE_TITLES[n], _nanmean([i.precision[n] for i in items]), _nanmean([i.judged[n] for i in items]),
              _nanmean([i.recall[n] for i in items])] + [_nanmean([i.f_score[n] for i in v]) for v in groups.values()]

@@ -16,6 +16,7 @@ from gd_completion.model.network import GGDNet
 from gd_completion.synth.dataset import build_dataset, load_dataset
 
 from .baselines import BASELINE_NAMES, mirror_symmetry, network_outputs, published_outputs
+from .mesh_distance import distances_to_meshes, surface_shares
 from .metrics import (
     CD_SCALE,
     FIDELITY_SCALE,
@@ -30,13 +31,15 @@ from .priors import box_fill, template_points, thinned_union
 # Seeds from EVAL_SEED up are reserved for evaluation; training sets must use seeds below it.
 EVAL_SEED = 9_000_000
 SYNTHETIC_METRICS: tuple[str, ...] = ("cd", "cd_dg", "cd_gd", "f_score", "fidelity", "cd_gd_observed",
-                                      "cd_gd_unobserved")
+                                      "cd_gd_unobserved", "on_surface", "far")
 
 
 @dataclass
 class SyntheticResult:
     """Mean metrics per baseline (CD, CD(D,G), CD(G,D) x1e4; fidelity x1e3) on `n_samples` held-out pairs;
-    CD(G,D) also split into observed / unobserved ground truth (`completeness_by_region`)."""
+    CD(G,D) also split into observed / unobserved ground truth (`completeness_by_region`); on_surface and far:
+    shares of output points within `NEAR_SURFACE` of the true mesh and beyond `FAR_FROM_SURFACE` (NaN without
+    the meshes)."""
 
     n_samples: int
     seed: int | None
@@ -52,13 +55,15 @@ class SyntheticResult:
 
 class HeldOut(NamedTuple):
     """Held-out pairs; `surface` is a second uniform sample of each true surface (None when not available);
-    `sizes` (S, 3) the boxes' (length, width, height) in metres, which normalised each pair."""
+    `sizes` (S, 3) the boxes' (length, width, height) in metres, which normalised each pair; `meshes` each
+    pair's true surface, (vertices (V, 3), faces (F, 3)) in its normalised frame (None when not available)."""
 
     partial: np.ndarray
     complete: np.ndarray
     source: str
     surface: np.ndarray | None = None
     sizes: np.ndarray | None = None
+    meshes: list[tuple[np.ndarray, np.ndarray]] | None = None
 
 
 @dataclass
@@ -97,10 +102,16 @@ def _sizes(data: dict[str, Any], count: int, where: str) -> np.ndarray:
     return sizes[:count]
 
 
+def _pair_meshes(data: dict[str, Any]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each pair's (vertices, faces) of a `build_dataset(surface_mesh=True)` dict."""
+    return list(zip(data["mesh_vertices"], data["mesh_faces"]))
+
+
 def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path | None = None,
                  path: str | Path | None = None) -> HeldOut:
-    """Held-out pairs: `load_dataset(path)` when `path` is given, else `build_dataset(n_samples, seed,
-    surface_resample=True)` on a seed reserved for evaluation (with the mesh folder `mesh_dir`)."""
+    """Held-out pairs: `load_dataset(path)` when `path` is given (no meshes), else `build_dataset(n_samples,
+    seed, surface_resample=True, surface_mesh=True)` on a seed reserved for evaluation (with the mesh folder
+    `mesh_dir`)."""
     if path is not None:
         data = load_dataset(Path(path))
         partial, complete = _pairs(data, str(path))
@@ -110,11 +121,11 @@ def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path 
                        None if surface is None else np.asarray(surface, np.float32)[:n], _sizes(data, n, str(path)))
     if mesh_dir is not None and not Path(mesh_dir).is_dir():
         raise EvaluationError(f"held-out mesh folder {mesh_dir}: not a directory")
-    data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, surface_resample=True)
+    data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, surface_resample=True, surface_mesh=True)
     partial, complete = _pairs(data, "build_dataset")
     where = f"build_dataset(seed={seed}" + (f", meshes {mesh_dir})" if mesh_dir else ", generated shapes)")
     return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32),
-                   _sizes(data, len(partial), where))
+                   _sizes(data, len(partial), where), _pair_meshes(data))
 
 
 def load_heldout_meshes(n_samples: int, mesh_dir: str | Path, *, seed: int = EVAL_SEED) -> HeldOut:
@@ -131,13 +142,13 @@ def load_heldout_meshes(n_samples: int, mesh_dir: str | Path, *, seed: int = EVA
         if n_samples < 1:
             raise EvaluationError("no held-out mesh samples requested")
         data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, mesh_fraction=1.0, only_meshes=HELDOUT_MESHES,
-                             surface_resample=True)
+                             surface_resample=True, surface_mesh=True)
     except DataFormatError as exc:   # an unreadable mesh
         raise EvaluationError(f"held-out meshes: {exc}") from exc
     partial, complete = _pairs(data, "build_dataset")
     where = f"the {found} held-out meshes of {Path(mesh_dir).name} ({', '.join(HELDOUT_MESHES)}), seed {seed}"
     return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32),
-                   _sizes(data, len(partial), where))
+                   _sizes(data, len(partial), where), _pair_meshes(data))
 
 
 def _chamfer_row(output: np.ndarray, complete: np.ndarray) -> tuple[dict[str, float], Tensor]:
@@ -150,12 +161,27 @@ def _chamfer_row(output: np.ndarray, complete: np.ndarray) -> tuple[dict[str, fl
             "f_score": float(f_score_of(to_truth, to_output).mean())}, to_output
 
 
+def _mesh_shares(clouds: dict[str, np.ndarray], meshes: Sequence[tuple[np.ndarray, np.ndarray]] | None,
+                 count: int) -> dict[str, dict[str, float]]:
+    """{name: {on_surface, far}} of each cloud set (S, N, 3) against the pairs' meshes (NaN without them)."""
+    if meshes is None:
+        return {name: {"on_surface": float("nan"), "far": float("nan")} for name in clouds}
+    if len(meshes) != count:
+        raise EvaluationError(f"{len(meshes)} true meshes for {count} pairs")
+    names = list(clouds)
+    distances = distances_to_meshes([clouds[n] for n in names], [v for v, _ in meshes], [f for _, f in meshes])
+    return {n: dict(zip(("on_surface", "far"), surface_shares(d))) for n, d in zip(names, distances)}
+
+
 def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray, sizes: np.ndarray, *,
                        seed: int | None = None, source: str = "", max_batch: int = 32, n_examples: int = 4,
-                       surface: np.ndarray | None = None) -> SyntheticResult:
+                       surface: np.ndarray | None = None,
+                       meshes: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> SyntheticResult:
     """CD, CD(D,G), CD(G,D) (x1e4) and Fidelity (x1e3) of every method, averaged over the pairs; `sizes`
     (S, 3): each pair's box (length, width, height), given to the network and the box priors. With `surface`
-    (a second sample of each true surface), also the metric floor `SyntheticResult.floor`."""
+    (a second sample of each true surface), also the metric floor `SyntheticResult.floor`. With `meshes` (each
+    pair's true mesh, (vertices, faces) in its normalised frame), the shares of output points on the surface
+    and far from it (`mesh_distance.surface_shares`; the raw input's are its points'), else NaN."""
     t0 = time.perf_counter()
     partial = np.asarray(partial, np.float32)
     complete = np.asarray(complete, np.float32)
@@ -177,7 +203,13 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
         seen, unseen, observed_fraction = region_means(gt_to_output, observed)
         result[name] = {**row, "fidelity": float(fidelity(partial, out).mean()) * FIDELITY_SCALE,
                         "cd_gd_observed": seen * CD_SCALE, "cd_gd_unobserved": unseen * CD_SCALE}
-    floor = _chamfer_row(np.asarray(surface, np.float32), complete)[0] if surface is not None else None
+    clouds = {name: outputs[name] for name in BASELINE_NAMES}
+    if surface is not None:
+        clouds["(floor)"] = np.asarray(surface, np.float32)
+    shares = _mesh_shares(clouds, meshes, len(partial))
+    for name in BASELINE_NAMES:
+        result[name].update(shares[name])
+    floor = {**_chamfer_row(clouds["(floor)"], complete)[0], **shares["(floor)"]} if surface is not None else None
     examples = [(f"synthetic #{i}", partial[i], completion[i], complete[i])
                 for i in range(min(n_examples, len(partial)))]
     return SyntheticResult(len(partial), seed, source, result, time.perf_counter() - t0, examples,

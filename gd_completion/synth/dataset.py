@@ -35,6 +35,7 @@ GENERATOR_VERSION = "gd_completion.synth/2"
 DEFAULT_PATTERNS = ("hdl64e", "pandar64", "pandar40p")
 _SEED_TAG = 0x6D5A7E
 _POINT_KEYS = ("partial", "complete")
+_MESH_KEYS = ("mesh_vertices", "mesh_faces")   # build_dataset(surface_mesh=True): lists, never saved
 
 
 @dataclasses.dataclass(frozen=True)
@@ -239,7 +240,7 @@ def network_partial(points: np.ndarray, box: Box3D, prep: Preprocessing, n_input
 def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Mesh] | None = None, *,
                 pattern: BeamPattern | str | Sequence[str] | None = None, n_input: int = 1024,
                 n_gt: int = 2048, preprocessing: Preprocessing | None = None, max_attempts: int = 60,
-                surface_resample: bool = False, options: SampleOptions | None = None
+                surface_resample: bool = False, options: SampleOptions | None = None, surface_mesh: bool = False
                 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """One training pair: (partial (n_input,3), complete (n_gt,3)) float32 normalised by the vehicle's box.
 
@@ -252,7 +253,9 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
     Poses giving fewer than its `min_points` points are re-drawn (the shape too, every 10 attempts).
     `surface_resample` adds meta["surface_resample"]: a second, independent uniform sample of the same surface
     (drawn last, so the pair is the same with or without it), whose Chamfer distance to `complete` is the
-    metric's floor. meta["size"] is the size of the box used (noisy or not), meta["true_size"] the vehicle's,
+    metric's floor. `surface_mesh` adds meta["mesh_vertices"] (V,3) float32 and meta["mesh_faces"] (F,3) int32:
+    the vehicle's mesh in the pair's normalised frame (no random draw: the pair is the same with or without it).
+    meta["size"] is the size of the box used (noisy or not), meta["true_size"] the vehicle's,
     meta["box_noise"] the (7,) error (centre offset, size factors, yaw offset; see `_box_noise`) of the box
     against the vehicle's (centre meta["true_center"], heading meta["yaw"]); meta["tilt"] the sensor's
     (roll, pitch) in degrees; meta["sensor_heading"] the heading (deg) of a forward-facing pattern, which is
@@ -317,6 +320,9 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
             "true_center": centre.astype(np.float32)}
     if surface_resample:
         meta["surface_resample"] = normalize(sample_surface(world, n_gt, rng), box).astype(np.float32)
+    if surface_mesh:
+        meta["mesh_vertices"] = normalize(world.vertices, box).astype(np.float32)
+        meta["mesh_faces"] = world.faces.astype(np.int32)
     return partial, gt, meta
 
 
@@ -337,7 +343,7 @@ def _meshes(meshes_dir: str | None, exclude: tuple[str, ...] = (), only: tuple[s
 
 
 def _make_range(args: tuple) -> list[tuple[np.ndarray, np.ndarray, dict]]:
-    start, stop, seed, mesh_key, n_input, n_gt, mesh_fraction, resample, prep, options = args
+    start, stop, seed, mesh_key, n_input, n_gt, mesh_fraction, resample, prep, options, with_mesh = args
     try:  # one thread per worker: FPS runs in torch
         import torch
         torch.set_num_threads(1)
@@ -350,7 +356,7 @@ def _make_range(args: tuple) -> list[tuple[np.ndarray, np.ndarray, dict]]:
         rng = sample_rng(seed, i)
         source = meshes if meshes and rng.random() < mesh_fraction else None
         out.append(make_sample(rng, source, n_input=n_input, n_gt=n_gt, preprocessing=Preprocessing.from_dict(prep),
-                               surface_resample=resample, options=opts))
+                               surface_resample=resample, options=opts, surface_mesh=with_mesh))
     return out
 
 
@@ -358,8 +364,8 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
                   patterns: Sequence[str] | None = None, workers: int = 1, n_input: int = 1024,
                   n_gt: int = 2048, mesh_fraction: float = 0.3, surface_resample: bool = False,
                   preprocessing: Preprocessing | None = None, options: SampleOptions | None = None,
-                  exclude_meshes: Sequence[str] | None = None, only_meshes: Sequence[str] | None = None
-                  ) -> dict[str, Any]:
+                  exclude_meshes: Sequence[str] | None = None, only_meshes: Sequence[str] | None = None,
+                  surface_mesh: bool = False) -> dict[str, Any]:
     """`n_samples` pairs, deterministic for `seed` whatever `workers` is (sample i uses `sample_rng(seed, i)`).
 
     `options` (default V1_SAMPLING: generator version 1's pairs; V2_SAMPLING for training) sets the kinds,
@@ -372,7 +378,9 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
     `complete` (S,n_gt,3) float32, `n_points`, `size` (S,3) (of the box used, noisy or not), `true_size`
     (S,3), `box_noise` (S,7), `distance`, `yaw`, `label`, `kind`, `pattern`, and a `metadata` dict holding
     everything that shaped the data (metadata["sample_options"] is `options.to_dict()`); with
-    `surface_resample`, also `surface_resample` (S,n_gt,3) (see `make_sample`; the other arrays are unchanged).
+    `surface_resample`, also `surface_resample` (S,n_gt,3) (see `make_sample`; the other arrays are unchanged);
+    with `surface_mesh`, also lists `mesh_vertices` and `mesh_faces` of each pair's mesh in its normalised frame
+    (sizes differ: lists, not arrays; `save_dataset` refuses them).
     `preprocessing` (default: the contract's defaults) is recorded in metadata["preprocessing"].
     """
     prep = preprocessing or Preprocessing()
@@ -388,7 +396,8 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
     workers = max(1, min(int(workers), n_samples or 1))
     step = max(1, -(-n_samples // (workers * 4)))
     jobs = [(s, min(s + step, n_samples), int(seed), mesh_key, n_input, n_gt, mesh_fraction,
-             bool(surface_resample), prep.to_dict(), opts.to_dict()) for s in range(0, n_samples, step)]
+             bool(surface_resample), prep.to_dict(), opts.to_dict(), bool(surface_mesh))
+            for s in range(0, n_samples, step)]
     if workers == 1:
         chunks = [_make_range(j) for j in jobs]
     else:
@@ -412,6 +421,9 @@ def build_dataset(n_samples: int, seed: int, *, meshes_dir: str | Path | None = 
     if surface_resample:
         data["surface_resample"] = (np.stack([m["surface_resample"] for m in metas]) if samples
                                     else np.zeros((0, n_gt, 3), np.float32))
+    if surface_mesh:
+        data["mesh_vertices"] = [m["mesh_vertices"] for m in metas]
+        data["mesh_faces"] = [m["mesh_faces"] for m in metas]
     labels, counts = np.unique(data["label"], return_counts=True)
     data["metadata"] = {
         "generator_version": GENERATOR_VERSION, "seed": int(seed), "n_samples": int(n_samples),
@@ -434,6 +446,9 @@ def save_dataset(path: str | Path, data: dict[str, Any]) -> Path:
     for key, value in data.items():
         if key == "metadata":
             continue
+        if key in _MESH_KEYS:
+            raise ValueError(f"save_dataset: {key!r} holds per-sample meshes, which are not stored; build the "
+                             "data set without surface_mesh to save it")
         arr = np.asarray(value)
         if arr.dtype == object:
             raise ValueError(f"save_dataset: {key!r} is an object array")

@@ -69,7 +69,8 @@ def run_evaluation(args: argparse.Namespace) -> int:
         else:
             built = time.perf_counter() - t0
             result = evaluate_synthetic(model, partial, complete, heldout.sizes, seed=synthetic_seed,
-                                        source=heldout.source, max_batch=args.max_batch, surface=heldout.surface)
+                                        source=heldout.source, max_batch=args.max_batch, surface=heldout.surface,
+                                        meshes=heldout.meshes)
             emit(synthetic_section(result))
             write_renders(out, "synthetic_vehicles.png", result.examples)
             if args.ablation_checkpoints:
