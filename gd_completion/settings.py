@@ -86,9 +86,10 @@ SETTINGS: dict[str, Setting] = {
     "include_input_points": Setting(True, "Also publish the measured points of each completed vehicle (generated=0); "
                                           "without them, a merged completion's own measured points still carry "
                                           "generated=0.", live=True, flag="--no-input-points"),
-    "measured_merge": Setting(True, "Thin each completion together with the measured points fed to the network (a "
-                                    "track's fused partial: one point per 2 % voxel) and their mirror image (measured "
-                                    "points replace network points where they lie densely).", live=True),
+    "measured_merge": Setting(True, "Thin each completion together with every measured point of the vehicle (one "
+                                    "per 1 % voxel; a track's: its fused partial) and their mirror image, measured "
+                                    "points first (they replace network points wherever the vehicle was seen).",
+                              live=True),
     # per-frame work limits (gd_completion.limits.FrameLimits); every skip is a counter in /diagnostics
     "max_boxes": Setting(_LIMITS.max_boxes, "Boxes completed per frame at most, nearest first; the rest are skipped "
                                             "(too_many_boxes).", 1, 100_000, live=True),
