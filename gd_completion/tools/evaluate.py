@@ -91,10 +91,25 @@ def run_evaluation(args: argparse.Namespace) -> int:
         else:
             built = time.perf_counter() - t0
             result = evaluate_synthetic(model, meshes.partial, meshes.complete, meshes.sizes, seed=synthetic_seed,
-                                        source=meshes.source, max_batch=args.max_batch, surface=meshes.surface)
+                                        source=meshes.source, max_batch=args.max_batch, surface=meshes.surface,
+                                        meshes=meshes.meshes)
             emit(synthetic_section(result, title))
             write_renders(out, "heldout_meshes.png", result.examples)
             timings.append(f"held-out meshes: data {built:.1f} s, evaluation {time.perf_counter() - t0 - built:.1f} s")
+
+    if args.synthetic_samples > 0 and not args.no_classification:
+        from gd_completion.evaluation.classification import classification_section, evaluate_classification
+
+        t0 = time.perf_counter()
+        classified = evaluate_classification(
+            model, mesh_dir=args.heldout_meshes or DEFAULT_MESHES, preprocessing=preprocessing,
+            pandaset=None if args.no_pandaset else (args.pandaset or DEFAULT_PANDASET),
+            train_samples=args.classification_train_samples, synthetic_samples=args.classification_samples,
+            mesh_samples=args.heldout_mesh_samples, sensors=tuple(args.sensors), max_vehicles=args.max_vehicles,
+            max_batch=args.max_batch)
+        emit(classification_section(classified))
+        steps = ", ".join(f"{k} {v:.1f} s" for k, v in classified.seconds.items())
+        timings.append(f"classification: {time.perf_counter() - t0:.1f} s ({steps})")
 
     pandaset = Path(args.pandaset) if args.pandaset else DEFAULT_PANDASET
     if args.no_pandaset:
@@ -198,6 +213,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="track fusion without aligning each frame to its track (the node's fusion_align:=false)")
     parser.add_argument("--fusion-max-vehicles", type=int, default=None,
                         help="first N stationary and N moving vehicles in the fusion part (default all)")
+    parser.add_argument("--no-classification", action="store_true",
+                        help="skip the downstream classification part (as does --synthetic-samples 0)")
+    parser.add_argument("--classification-train-samples", type=int, default=2400,
+                        help="complete shapes the part's PointNet classifier trains on (default 2400)")
+    parser.add_argument("--classification-samples", type=int, default=330,
+                        help="procedural held-out shapes it classifies (default 330; the held-out meshes follow "
+                        "--heldout-mesh-samples, PandaSet --pandaset)")
     parser.add_argument("--max-batch", type=int, default=32, help="vehicles per forward pass (default 32)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
     parser.set_defaults(func=run_evaluation)
