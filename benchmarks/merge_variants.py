@@ -5,8 +5,10 @@ merged in several ways, beside the network alone and the mirror + template prior
     python benchmarks/merge_variants.py [--model PT] [--pandaset DIR] [--variants SPEC ...]
 
 A SPEC is `pool:VOXEL:NETWORK_WEIGHT:MIRROR_WEIGHT` (one measured point per VOXEL voxel, 0: all of them; the
-weights of the weighted FPS, `kernels.fps_pruned`) or `fed` (the 512 points fed to the network, unweighted: the
-merge before model v3). The shipped merge is `merge.merge_with_pool` (printed as "shipped")."""
+weights of the weighted FPS, `kernels.fps_pruned`), `fed` (the 512 points fed to the network, unweighted: the
+merge before model v3) or `sor:K:Z` (the shipped merge after dropping the completion's points whose mean distance
+to their K nearest is above the mean + Z standard deviations). The shipped merge is `merge.merge_with_pool`
+(printed as "shipped")."""
 from __future__ import annotations
 
 import argparse
@@ -16,6 +18,7 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from gd_completion.datasets.pandaset import PandaSetSequence
 from gd_completion.evaluation import pandaset_eval as pe
@@ -23,7 +26,7 @@ from gd_completion.evaluation.baselines import _resampled, network_outputs
 from gd_completion.evaluation.nearest import nearest_sq
 from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.kernels import fps_pruned
-from gd_completion.merge import merge_with_pool, mirrored
+from gd_completion.merge import POOL_VOXEL, merge_measured, merge_with_pool, mirrored
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.preprocess import Preprocessing
 from gd_completion.sampling import voxel_first_indices
@@ -39,6 +42,19 @@ def weighted(voxel: float, network: float, mirror: float) -> Merge:
         weights = np.full(len(union), network, np.float32)
         weights[:len(pool)], weights[len(pool):2 * len(pool)] = 1.0, mirror
         return union[fps_pruned(union, len(completion), weights=weights)]
+    return merge
+
+
+def outliers_dropped(k: int, z: float) -> Merge:
+    """The shipped merge after dropping the completion's isolated points: mean distance to their k nearest
+    completion points above the cloud's mean + z standard deviations."""
+    def merge(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray) -> np.ndarray:
+        spread = cKDTree(completion).query(completion, k + 1)[0][:, 1:].mean(1)
+        keep = spread <= spread.mean() + z * spread.std()
+        pool = partial[voxel_first_indices(partial, POOL_VOXEL)]
+        if 2 * len(pool) + keep.sum() < len(completion):
+            keep[:] = True
+        return merge_measured(completion[keep], pool, len(completion)).points
     return merge
 
 
@@ -74,7 +90,8 @@ def main() -> None:
         "shipped": lambda c, p, r, s: merge_with_pool(c, p).points}
     for spec in args.variants:
         kind, *values = spec.split(":")
-        merges[spec] = fed_only if kind == "fed" else weighted(*(float(v) for v in values))
+        merges[spec] = fed_only if kind == "fed" else outliers_dropped(int(values[0]), float(values[1])) \
+            if kind == "sor" else weighted(*(float(v) for v in values))
     bins = [name for name, *_ in pe.SIZE_BINS]
     print(f"{len(observations)} observations; coverage x1e3 all / {' / '.join(bins)} | fidelity x1e3 the same | "
           "ms per vehicle")
