@@ -237,8 +237,8 @@ def fusion_section(result: FusionResult) -> str:
     ratio = result.coverage_ratio(RATIO_FRAMES)
     parts.append("### Coverage error x1e3 after k fused frames (stationary vehicles)\n\n"
                  "Reference: the vehicle's points over all frames of the sequence in its box frame, 4096 voxel-uniform "
-                 "samples. Completions as published (GGD-Net, then the measured merge: a single frame with the "
-                 "points fed to the network, a fused partial with one of its points per 2 % voxel). "
+                 "samples. Completions as published (GGD-Net, then the measured merge with one of the measured points "
+                 "per 1 % voxel: a single frame's or a fused partial's). "
                  "(a) GGD-Net on the fused partial, (b) the raw fused points, (c) GGD-Net on the k-th frame "
                  "alone, only where that frame itself has >= 50 points in the box ((a) is repeated over those same "
                  "vehicles for the ratio). The reference contains the fused frames, so (b) falls towards 0 as the "
