@@ -17,7 +17,7 @@ from gd_completion.synth.vehicles import VEHICLE_KINDS, generate_vehicle
 TINY = GGDConfig(num_input=128, num_output=256, num_control=32, tree_arity=(8, 4, 7), encoder_h0=(16, 32),
                  encoder_h1=(32,), code_hidden=(64,), code_dim=32, tree_hidden=(32,), local_widths=(16,),
                  gcn_width=16, gcn_blocks=1)
-FAST = cls.TrainSettings(epochs=1, batch_size=8, n_points=128)
+FAST = cls.ClassifierSettings(epochs=1, batch_size=8, n_points=128)
 
 
 def test_every_generator_kind_and_mesh_has_a_class(shared_data: Path) -> None:
@@ -99,7 +99,7 @@ def test_classifier_is_deterministic_and_separates_bus_from_car() -> None:
     bus, car = cls.class_index("bus"), cls.class_index("car")
     train = np.concatenate([_shapes("bus", 16, 1), _shapes("sedan", 16, 2)])
     labels = np.array([bus] * 16 + [car] * 16)
-    settings = cls.TrainSettings(epochs=4, batch_size=8, n_points=256)
+    settings = cls.ClassifierSettings(epochs=4, batch_size=8, n_points=256)
     net, log = cls.train_classifier(train, labels, settings=settings, seed=3)
     again, _ = cls.train_classifier(train, labels, settings=settings, seed=3)
     other, _ = cls.train_classifier(train, labels, settings=settings, seed=4)
@@ -161,7 +161,7 @@ def test_tiny_experiment_renders_its_values(shared_data: Path) -> None:
 
 
 def test_section_without_sets() -> None:
-    log = cls.TrainLog(2, {"car": 2}, 0, FAST, 0.1, 1.0, 0.5, "test")
+    log = cls.ClassifierLog(2, {"car": 2}, 0, FAST, 0.1, 1.0, 0.5, "test")
     text = cls.classification_section(cls.ClassificationResult(log, [], notes=["nothing to classify"]))
     assert "No set was classified" in text and "nothing to classify" in text
 

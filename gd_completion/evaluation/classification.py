@@ -113,7 +113,7 @@ class PointNetClassifier(nn.Module):
 
 
 @dataclass(frozen=True)
-class TrainSettings:
+class ClassifierSettings:
     """Classifier training: `epochs` over the shapes in batches of `batch_size`, Adam with a cosine schedule
     from `lr`; each step takes a random subset of `n_points` points per shape, scales each axis by
     U(1 - scale, 1 + scale), adds N(0, jitter) noise (clipped at 3 sigma) and mirrors y -> -y half the time
@@ -130,21 +130,21 @@ class TrainSettings:
 
 
 @dataclass(frozen=True)
-class TrainLog:
+class ClassifierLog:
     """What trained the classifier: shapes per class, seed, settings, run time and the last epoch's loss and
     accuracy on its (augmented) training batches."""
 
     n_shapes: int
     counts: dict[str, int]
     seed: int
-    settings: TrainSettings
+    settings: ClassifierSettings
     seconds: float
     loss: float
     accuracy: float
     source: str = ""
 
 
-def _augment(clouds: np.ndarray, rng: np.random.Generator, settings: TrainSettings) -> np.ndarray:
+def _augment(clouds: np.ndarray, rng: np.random.Generator, settings: ClassifierSettings) -> np.ndarray:
     """(B, n_points, 3) float32: a random point subset of each (B, M, 3) cloud, scaled, jittered, maybe mirrored."""
     b, m = clouds.shape[:2]
     n = min(settings.n_points, m)
@@ -157,7 +157,7 @@ def _augment(clouds: np.ndarray, rng: np.random.Generator, settings: TrainSettin
 
 
 @torch.no_grad()
-def _calibrate_batch_norm(net: PointNetClassifier, clouds: np.ndarray, settings: TrainSettings, seed: int) -> None:
+def _calibrate_batch_norm(net: PointNetClassifier, clouds: np.ndarray, settings: ClassifierSettings, seed: int) -> None:
     """Batch-norm statistics re-estimated as plain averages over `clouds` (subsampled, not augmented), dropout
     off: the running averages of a short training lag behind its last weights."""
     norms = [m for m in net.modules() if isinstance(m, nn.BatchNorm1d)]
@@ -175,8 +175,8 @@ def _calibrate_batch_norm(net: PointNetClassifier, clouds: np.ndarray, settings:
     net.eval()
 
 
-def train_classifier(clouds: np.ndarray, labels: np.ndarray, *, settings: TrainSettings = TrainSettings(),
-                     seed: int = 0, source: str = "") -> tuple[PointNetClassifier, TrainLog]:
+def train_classifier(clouds: np.ndarray, labels: np.ndarray, *, settings: ClassifierSettings = ClassifierSettings(),
+                     seed: int = 0, source: str = "") -> tuple[PointNetClassifier, ClassifierLog]:
     """A PointNetClassifier trained on complete shapes `clouds` (S, M, 3) of classes `labels` (S,) (indices of
     CLASSES); deterministic for `seed` on the CPU (same thread count). Its batch-norm statistics are then
     re-estimated on up to CALIBRATION_SHAPES of the shapes. Returned in eval mode."""
@@ -213,7 +213,7 @@ def train_classifier(clouds: np.ndarray, labels: np.ndarray, *, settings: TrainS
         _calibrate_batch_norm(net, clouds[rng.permutation(len(clouds))[:CALIBRATION_SHAPES]], settings,
                               int(rng.integers(2**31)))
     counts = Counter(CLASSES[i] for i in labels)
-    log = TrainLog(len(clouds), {c: counts[c] for c in CLASSES if counts[c]}, seed, settings,
+    log = ClassifierLog(len(clouds), {c: counts[c] for c in CLASSES if counts[c]}, seed, settings,
                    time.perf_counter() - t0, loss_sum / len(clouds), right / len(clouds), source)
     return net.eval(), log
 
@@ -405,7 +405,7 @@ def evaluate_set(classifier: PointNetClassifier, model: GGDNet, labelled: Labell
 class ClassificationResult:
     """The experiment: the classifier's training and its predictions on each evaluated set."""
 
-    train: TrainLog
+    train: ClassifierLog
     sets: list[SetResult]
     seconds: dict[str, float] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
@@ -415,7 +415,7 @@ def evaluate_classification(model: GGDNet, *, mesh_dir: str | Path | None = None
                             preprocessing: Preprocessing | None = None, train_samples: int = 3000,
                             synthetic_samples: int = 330, mesh_samples: int = 128, sensors: Sequence[int] = (0, 1),
                             max_vehicles: int | None = None, max_per_vehicle: int = MAX_OBSERVATIONS,
-                            settings: TrainSettings = TrainSettings(), seed: int = TRAIN_SEED,
+                            settings: ClassifierSettings = ClassifierSettings(), seed: int = TRAIN_SEED,
                             max_batch: int = 32) -> ClassificationResult:
     """Train the classifier on `train_samples` complete shapes (training seed `seed`, the training meshes of
     `mesh_dir` when given) and classify every input on the procedural held-out set (`synthetic_samples`), the
