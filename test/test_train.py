@@ -319,18 +319,21 @@ def test_the_repository_keeps_its_recipes():
     assert {p.stem for p in RECIPES} >= {"ggd_v2_stage1", "ggd_v2_stage4", "ggd_v2_stage5b", "ggd_v2_stage6"}
 
 
-@pytest.mark.parametrize(("weights", "recipe_name"), [
-    ("docs/evaluation/ablation/ggd_v2_stage5b.pt", "ggd_v2_stage5b"),         # the shipped network's completion part
-    ("docs/evaluation/ablation/ggd_v2_stage6.pt", "ggd_v2_stage6"),           # measured, kept, not shipped
+@pytest.mark.parametrize(("weights", "recipe_name", "epochs_done"), [
+    ("docs/evaluation/ablation/ggd_v2_stage5b.pt", "ggd_v2_stage5b", None),   # v2's completion network
+    ("docs/evaluation/ablation/ggd_v2_stage6.pt", "ggd_v2_stage6", None),     # measured, kept, not shipped
+    ("gd_completion/weights/ggd_vehicles.pt", "ggd_v3_surface", 3),           # shipped: stopped after 3 of 5 epochs
 ])
-def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name):
-    """README, model card and MODEL.md name the recipe of each kept checkpoint: its schedule, seed and configuration
-    are the ones stored in the checkpoint."""
+def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name, epochs_done):
+    """README, model card and MODEL.md name the recipe of each kept checkpoint: its schedule, seed, loss weights and
+    configuration are the ones stored in the checkpoint (a run stopped early: its epochs done)."""
     recipe = json.loads((REPO / "recipes" / f"{recipe_name}.json").read_text())
     meta = read_checkpoint_metadata(REPO / weights)
-    assert meta["epoch"] == recipe["epochs"] == len(meta["history"])
-    for key in ("epochs", "generation_epochs", "lam", "batch_size", "lr", "lr_final", "seed"):
-        assert meta["settings"][key] == recipe[key], key
+    assert meta["epoch"] == (epochs_done or recipe["epochs"]) == len(meta["history"])
+    for key in ("epochs", "generation_epochs", "lam", "batch_size", "lr", "lr_final", "seed", "gamma", "freeze"):
+        if key in recipe or key in meta["settings"]:
+            expected = recipe.get(key, 0.0 if key == "gamma" else [])
+            assert meta["settings"][key] == (tuple(expected) if key == "freeze" else expected), key
     assert GGDConfig.from_dict(meta["config"]) == GGDConfig.from_dict(recipe["config"])
 
 
