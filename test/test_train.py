@@ -322,7 +322,8 @@ def test_the_repository_keeps_its_recipes():
 @pytest.mark.parametrize(("weights", "recipe_name", "epochs_done"), [
     ("docs/evaluation/ablation/ggd_v2_stage5b.pt", "ggd_v2_stage5b", None),   # v2's completion network
     ("docs/evaluation/ablation/ggd_v2_stage6.pt", "ggd_v2_stage6", None),     # measured, kept, not shipped
-    ("gd_completion/weights/ggd_vehicles.pt", "ggd_v3_surface", 3),           # shipped: stopped after 3 of 5 epochs
+    ("docs/evaluation/ablation/ggd_v3_surface.pt", "ggd_v3_surface", 3),      # v3's first run: 3 of 5 epochs
+    ("gd_completion/weights/ggd_vehicles.pt", "ggd_v3b_noise", None),         # shipped (model v3)
 ])
 def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name, epochs_done):
     """README, model card and MODEL.md name the recipe of each kept checkpoint: its schedule, seed, loss weights and
