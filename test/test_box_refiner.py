@@ -272,7 +272,8 @@ def test_a_base_refiner_of_other_sizes_is_refused_and_an_older_run_resumes(tmp_p
 
 REPO = Path(__file__).resolve().parents[1]
 # each refiner checkpoint in the repository and the recipe whose run it is
-REFINER_RUNS = [(DEFAULT_WEIGHTS, "box_refiner_small.json"),
+V22_WEIGHTS = REPO / "docs/evaluation/ablation/ggd_v22.pt"   # v2.2: the small refiner's run (model v3 builds on it)
+REFINER_RUNS = [(V22_WEIGHTS, "box_refiner_small.json"),
                 (REPO / "docs/evaluation/ablation/ggd_v21_refiner_large.pt", "box_refiner.json")]
 
 
@@ -302,6 +303,16 @@ def test_refiner_weights_are_their_recipe_on_its_frozen_base(weights, recipe_nam
                                    refiner_hidden=settings.hidden)
     state = model.state_dict()
     assert all(torch.equal(state[k], v) for k, v in base.state_dict().items())
+
+
+def test_the_shipped_weights_keep_the_v22_refiner_frozen():
+    """Model v3 fine-tuned v2.2's completion network with its box refiner frozen: every refiner tensor (weights and
+    batch-norm statistics) is v2.2's, and the completion network did change."""
+    shipped, v22 = load_checkpoint(DEFAULT_WEIGHTS)[0].state_dict(), load_checkpoint(V22_WEIGHTS)[0].state_dict()
+    assert shipped.keys() == v22.keys()
+    refiner = [k for k in v22 if k.startswith("refiner.")]
+    assert refiner and all(torch.equal(shipped[k], v22[k]) for k in refiner)
+    assert not all(torch.equal(shipped[k], v22[k]) for k in v22 if not k.startswith("refiner."))
 
 
 def test_inference_folds_the_refiner_batch_norms_into_its_point_layers():
