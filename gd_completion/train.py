@@ -15,7 +15,7 @@ import torch
 from .errors import CheckpointError, DataFormatError, TrainingError
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.config import GGDConfig
-from .model.losses import CD_SCALE, SURFACE_SCALE, chamfer_l2, ggd_loss, surface_distance
+from .model.losses import CD_SCALE, SURFACE_SCALE, chamfer_and_surface, chamfer_l2, ggd_loss
 from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
 
@@ -117,10 +117,11 @@ def evaluate(model: GGDNet, partial: torch.Tensor, complete: torch.Tensor, batch
     for s in range(0, partial.shape[0], batch_size):
         x, gt = partial[s:s + batch_size].to(device), complete[s:s + batch_size].to(device)
         out = model(x, _rows(shapes, slice(s, s + batch_size), device))
-        sums["cd_completion"] += chamfer_l2(out.completion, gt).sum().item()
+        cd, to_surface = chamfer_and_surface(out.completion, gt)
+        sums["cd_completion"] += cd.sum().item()
         sums["cd_generated"] += chamfer_l2(out.generated, gt).sum().item()
         sums["cd_coarse"] += chamfer_l2(out.coarse, gt).sum().item()
-        sums["surface"] += surface_distance(out.completion, gt).sum().item()
+        sums["surface"] += to_surface.sum().item()
     model.train(was_training)
     return {k: (SURFACE_SCALE if k == "surface" else CD_SCALE) * v / partial.shape[0] for k, v in sums.items()}
 

@@ -379,11 +379,14 @@ def test_surface_term_is_the_unsquared_distance_and_trains_on_denser_targets(tmp
     """The surface term is the mean Euclidean distance of each output point to its nearest target point (3-4-5:
     5 and 0 -> 2.5); with gamma > 0 it enters the loss after the generation epochs, and targets denser than N_o
     are accepted."""
-    from gd_completion.model.losses import surface_distance
+    from gd_completion.model.losses import chamfer_and_surface, chamfer_l2, surface_distance
 
     points = torch.tensor([[[3.0, 4.0, 0.0], [0.0, 0.0, 1.0]]])
     gt = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [10.0, 0.0, 0.0]]])
     assert surface_distance(points, gt).tolist() == pytest.approx([2.5])
+    clouds = torch.rand(2, 50, 3, generator=torch.Generator().manual_seed(1)), torch.rand(2, 80, 3)
+    both = chamfer_and_surface(*clouds)   # one search serves the loss's two terms
+    assert torch.equal(both[0], chamfer_l2(*clouds)) and torch.equal(both[1], surface_distance(*clouds))
     partial, complete = _data(16, 0)
     dense = np.concatenate([complete, complete[:, ::-1] * 0.999], axis=1)   # 2 N_o target points
     result = train(TINY, (partial, dense), (partial[:4], dense[:4]), tmp_path, _settings(gamma=1.0))

@@ -26,9 +26,16 @@ def chamfer_l2_directional(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
     fraction of the memory and time of differentiating through the (B, Na, Nb) matrix.
     """
     ia, ib = nearest_indices(a, b)
-    ab = (a - gather_points(b, ia)).pow(2).sum(-1).mean(1)
-    ba = (b - gather_points(a, ib)).pow(2).sum(-1).mean(1)
-    return ab, ba
+    return _squared_to(a, b, ia).mean(1), _squared_to(b, a, ib).mean(1)
+
+
+def _squared_to(a: Tensor, b: Tensor, nearest: Tensor) -> Tensor:
+    """(B, Na): squared distance of every point of `a` to its `nearest` point of `b` (indices (B, Na))."""
+    return (a - gather_points(b, nearest)).pow(2).sum(-1)
+
+
+def _unsquared_mean(squared: Tensor) -> Tensor:
+    return (squared + 1e-12).sqrt().mean(1)
 
 
 def surface_distance(points: Tensor, gt: Tensor) -> Tensor:
@@ -36,8 +43,14 @@ def surface_distance(points: Tensor, gt: Tensor) -> Tensor:
 
     Its gradient has the same size at 1 mm as at 10 cm, so unlike the squared Chamfer term it keeps pulling
     points that are already close onto the surface: a crisp shell instead of a cloud around it."""
-    nearest = gather_points(gt, nearest_index(points, gt))
-    return ((points - nearest).pow(2).sum(-1) + 1e-12).sqrt().mean(1)
+    return _unsquared_mean(_squared_to(points, gt, nearest_index(points, gt)))
+
+
+def chamfer_and_surface(points: Tensor, gt: Tensor) -> tuple[Tensor, Tensor]:
+    """(`chamfer_l2(points, gt)`, `surface_distance(points, gt)`), each (B,), from one nearest-neighbour search."""
+    ia, ib = nearest_indices(points, gt)
+    to_gt = _squared_to(points, gt, ia)
+    return to_gt.mean(1) + _squared_to(gt, points, ib).mean(1), _unsquared_mean(to_gt)
 
 
 def chamfer_l2(a: Tensor, b: Tensor) -> Tensor:
@@ -74,12 +87,15 @@ def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float 
     Returns the terms (batch means, unweighted except for their unit factors) and `total`.
     """
     cd_coarse = chamfer_l2(output.coarse, gt).mean() * CD_SCALE
-    cd_fine = chamfer_l2(output.completion, gt).mean() * CD_SCALE
+    surface = gamma > 0 and lam > 0
+    cd, to_surface = chamfer_and_surface(output.completion, gt) if surface else \
+        (chamfer_l2(output.completion, gt), None)
+    cd_fine = cd.mean() * CD_SCALE
     control = smooth_l1(output.control_deformed, output.control)
     shape = laplacian_loss(output.completion, output.generated, output.neighbours) * CD_SCALE
     total = cd_coarse + lam * cd_fine + alpha * control + beta * shape
     terms = {"cd_coarse": cd_coarse, "cd_fine": cd_fine, "control": control, "shape": shape}
-    if gamma > 0 and lam > 0:
-        terms["surface"] = surface_distance(output.completion, gt).mean() * SURFACE_SCALE
+    if to_surface is not None:
+        terms["surface"] = to_surface.mean() * SURFACE_SCALE
         total = total + gamma * terms["surface"]
     return {"total": total, **terms}
