@@ -5,12 +5,12 @@ points; a densely seen side is better described by the measurements themselves. 
 point of the vehicle (one per `POOL_VOXEL` voxel: a single frame's crop or a track's fused partial alike), adds
 their mirror image about the box's longitudinal plane (y -> -y) and the completion, and keeps N_o of the union by
 a weighted farthest point sampling (`kernels.fps_pruned` with weights; deterministic, starting at a measured point):
-a measured point is taken where nothing chosen lies within its distance, a mirrored point only 1/sqrt(MIRROR_WEIGHT)
-times and a network point 1/sqrt(NETWORK_WEIGHT) times farther out. Measured points therefore replace network points
-wherever the vehicle was seen, at twice the spacing-density of the rest, so a densely seen vehicle keeps its
-measurements and fidelity does not worsen with density; the network fills what is unseen and the spacing stays
-even within each kind. The box-only analogue (mirror and a template instead of the network, unweighted) is the
-"mirror + template" prior of the evaluation.
+a measured point is taken where nothing chosen lies within its distance, a mirrored point only
+1/sqrt(MIRROR_WEIGHT) times and a network point 1/sqrt(NETWORK_WEIGHT) times farther out. Measured points therefore
+replace network points wherever the vehicle was seen, at half the network points' spacing (four times their density
+per area), so a densely seen vehicle keeps its measurements and fidelity does not worsen with density; the network
+fills what is unseen and the spacing stays even within each kind. The box-only analogue (mirror and a template
+instead of the network, unweighted) is the "mirror + template" prior of the evaluation.
 """
 from __future__ import annotations
 

@@ -338,6 +338,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
                                    clean.published[i])
         item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], len(partial),
                             size_bin(len(partial)), {}, {})
+        low = in_ground_band(band_refs[track.uuid], box, prep.ground_clearance)   # the same for every method
         for name in BASELINE_NAMES:
             out = outputs[name]
             to_out = nearest_sq(ref_random, out)
@@ -350,7 +351,6 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             item.output_points[name] = len(out)
             to_band = nearest_sq(band_refs[track.uuid], out)
             item.coverage_band[name] = float(to_band.mean()) * COVERAGE_SCALE
-            low = in_ground_band(band_refs[track.uuid], box, prep.ground_clearance)
             item.band_coverage[name] = float(to_band[low].mean()) * COVERAGE_SCALE if low.any() else math.nan
             item.fidelity_band[name] = float(nearest_sq(track.in_box[k], out).mean()) * FIDELITY_SCALE
         if i in noisy_nets:
