@@ -2,7 +2,8 @@
 
 The network's N_o points cover the whole vehicle, but only its N_c control points are copies of measured
 points; a densely seen side is better described by the measurements themselves. The merge pools every measured
-point of the vehicle (one per `POOL_VOXEL` voxel: a single frame's crop or a track's fused partial alike), adds
+point of the vehicle (one per `POOL_VOXEL` voxel: a single frame's crop or a track's fused partial alike, and the
+frame's ground-band points in the box's footprint, which the network is not fed: tyres and wheel arches), adds
 their mirror image about the box's longitudinal plane (y -> -y) and the completion, and keeps N_o of the union by
 a weighted farthest point sampling (`kernels.fps_pruned` with weights; deterministic, starting at a measured point):
 a measured point is taken where nothing chosen lies within its distance, a mirrored point only
@@ -78,11 +79,15 @@ def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None =
     return Merged(union[keep], np.where(keep < len(measured), keep, -1))
 
 
-def merge_with_pool(completion: np.ndarray, partial: np.ndarray, voxel: float = POOL_VOXEL) -> Merged:
+def merge_with_pool(completion: np.ndarray, partial: np.ndarray, voxel: float = POOL_VOXEL,
+                    band: np.ndarray | None = None) -> Merged:
     """`merge_measured` with one point per `voxel` voxel of a vehicle's measured `partial` (normalised; the first in
     its order: a track's fused partial lists the oldest frame first, so the pool changes little from frame to
-    frame). `Merged.measured_row` indexes `partial`."""
-    partial = np.asarray(partial, np.float32).reshape(-1, 3)
-    rows = voxel_first_indices(partial, voxel)
-    merged = merge_measured(completion, partial[rows])
+    frame) and of its ground-band points `band` (`preprocess.CroppedVehicle.band`: tyres and wheel arches the
+    network is not fed). `Merged.measured_row` indexes `partial` followed by `band`."""
+    measured = np.asarray(partial, np.float32).reshape(-1, 3)
+    if band is not None and len(band):
+        measured = np.concatenate([measured, np.asarray(band, np.float32).reshape(-1, 3)])
+    rows = voxel_first_indices(measured, voxel)
+    merged = merge_measured(completion, measured[rows])
     return Merged(merged.points, np.where(merged.is_measured, rows[np.maximum(merged.measured_row, 0)], -1))

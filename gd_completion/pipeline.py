@@ -246,44 +246,50 @@ class VehicleCompleter:
             stats.skip(vehicle.box, "too_many_points")
         return [v for v in vehicles if len(v.measured) <= self.limits.max_points_per_vehicle]
 
-    def complete_normalized(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None = None
-                            ) -> np.ndarray:
+    def complete_normalized(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None = None,
+                            bands: Sequence[np.ndarray] | None = None) -> np.ndarray:
         """Complete vehicles given in the normalised box frame, their boxes' sizes (length, width, height)
-        beside them (needed by a box-conditioned model); returns (B, num_output, 3) float32 (with
-        `measured_merge`, the merged points of `merge.merge_with_pool`)."""
+        beside them (needed by a box-conditioned model) and optionally their ground-band points
+        (`CroppedVehicle.band`); returns (B, num_output, 3) float32 (with `measured_merge`, the merged points of
+        `merge.merge_with_pool`)."""
         if not len(partials):
             return np.zeros((0, self.num_output, 3), np.float32)
-        done = self._complete_all(partials, sizes, self.measured_merge, math.inf, None)
+        done = self._complete_all(partials, sizes, self.measured_merge, math.inf, None, bands=bands)
         return np.stack([result[0] for result in done if result is not None])   # no deadline: all are done
 
     def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None, merge: bool,
-                      deadline: float, cancel: threading.Event | None, finish_by: bool = False
-                      ) -> list[VehicleResult | None]:
+                      deadline: float, cancel: threading.Event | None, finish_by: bool = False,
+                      bands: Sequence[np.ndarray] | None = None) -> list[VehicleResult | None]:
         """Each vehicle's (completion, measured rows) in order (`_complete_one`); None for those not started before
         `deadline` (time.monotonic) or after `cancel` was set. `finish_by`: a vehicle after the first starts only
         when it is expected to finish by `deadline` (the recent mean time of one vehicle)."""
         if sizes is not None and len(sizes) != len(partials):
             raise ValueError(f"{len(partials)} partial clouds but {len(sizes)} box sizes")
+        if bands is not None and len(bands) != len(partials):
+            raise ValueError(f"{len(partials)} partial clouds but {len(bands)} ground bands")
 
-        def one(item: tuple[int, np.ndarray, Sequence[float] | None]) -> VehicleResult | None:
-            index, partial, size = item
+        def one(item: tuple[int, np.ndarray, Sequence[float] | None, np.ndarray | None]) -> VehicleResult | None:
+            index, partial, size, band = item
             started = time.monotonic()
             expected = self._vehicle_seconds if finish_by and index > 0 else 0.0
             if started + expected > deadline or (cancel is not None and cancel.is_set()):
                 return None
-            result = self._complete_one(partial, size, merge)
+            result = self._complete_one(partial, size, merge, band)
             self._vehicle_seconds += 0.2 * (time.monotonic() - started - self._vehicle_seconds)
             return result
         run = self._pool.map if self._pool is not None else map
         count = len(partials)
-        return list(run(one, zip(range(count), partials, sizes if sizes is not None else [None] * count)))
+        return list(run(one, zip(range(count), partials, sizes if sizes is not None else [None] * count,
+                                 bands if bands is not None else [None] * count)))
 
-    def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, merge: bool) -> VehicleResult:
+    def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, merge: bool,
+                      band: np.ndarray | None = None) -> VehicleResult:
         """Resample one vehicle to the network's input size (`preprocess.network_input`) and complete it (one
         task of the thread pool): (num_output, 3) float32 points in the normalised frame and, per point, the
         row of `partial` it copies (-1: generated); with `merge`, merged with a pool of all its measured points
-        (`merge.merge_with_pool`; a single frame's crop or a track's fused partial alike), else all generated;
-        and the refined box's frame vector (None without a refiner)."""
+        (`merge.merge_with_pool`; a single frame's crop or a track's fused partial alike, and the ground-band points
+        `band`, whose rows follow the partial's), else all generated; and the refined box's frame vector (None
+        without a refiner)."""
         partial = np.asarray(partial, np.float32).reshape(-1, 3)
         rows = resample_indices(len(partial), partial, self.num_input)
         shape = box_shape([size]).to(self.device) if size is not None else None
@@ -293,7 +299,7 @@ class VehicleCompleter:
             frame = out.box_frame[0].double().cpu().numpy() if out.box_frame is not None else None
         if not merge:
             return completion, np.full(len(completion), -1, np.int64), frame
-        merged = merge_with_pool(completion, partial)
+        merged = merge_with_pool(completion, partial, band=band)
         return merged.points, merged.measured_row, frame
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],
@@ -378,7 +384,8 @@ class VehicleCompleter:
             run_deadline = min(deadline, time.monotonic() + cache.settings.budget_s)
         results = self._complete_all([vehicles[i].normalized for i in due], [vehicles[i].box.size for i in due],
                                      self.measured_merge, run_deadline, cancel,
-                                     finish_by=cache is not None and math.isfinite(cache.settings.budget_s))
+                                     finish_by=cache is not None and math.isfinite(cache.settings.budget_s),
+                                     bands=[vehicles[i].band for i in due])
         ran = dict(zip(due, results))
         cancelled = cancel is not None and cancel.is_set()
         outputs: list[tuple[np.ndarray, np.ndarray, np.ndarray | None] | None] = []
@@ -425,14 +432,15 @@ class VehicleCompleter:
         # the rows of the partial that are this frame's measured points (all of them but with fusion: its last)
         own_from = 0 if self.publish_fused_points or vehicle.current_rows is None \
             else len(vehicle.normalized) - vehicle.current_rows
-        own = row >= own_from
+        band = row >= len(vehicle.normalized)   # this frame's ground-band points: measured, never in `measured`
+        own = (row >= own_from) & ~band
         if include:   # published with the measured points
-            completion, own = completion[~own], own[~own]
+            completion, own, band = completion[~own], own[~own], band[~own]
         elif vehicle.current_source is not None and not self.publish_fused_points and own.any():
             # this frame's points where it measured them, not where its track placed them
             completion = completion.copy()
             completion[own] = normalize(vehicle.measured[vehicle.current_source[row[own] - own_from]], vehicle.box)
-        return completion, np.where(own, 0, 1).astype(np.uint8)
+        return completion, np.where(own | band, 0, 1).astype(np.uint8)
 
     def _cached_output(self, cached: CachedCompletion, include: bool) -> tuple[np.ndarray, np.ndarray]:
         """A cached completion as published: with the measured points published, its points that were measured

@@ -1,16 +1,18 @@
 """The preprocessing contract: a vehicle's points in a cloud -> the network's input, and its parameters.
 
-Crop the points inside the box grown by `crop_margin`, normalise them into the box frame (centre on the
-box, rotate by -yaw, divide by the length), drop the ground (the lowest `ground_clearance` metres of the
-box), skip vehicles with fewer than `min_points` points left, resample to the network's input size (FPS
-down, cyclic repetition up). The node, the offline tools, training-data generation and evaluation all
-call these functions; the `Preprocessing` a model was trained with is stored in its checkpoint.
+Crop the points inside the box grown by `crop_margin`, normalise them into the box frame (centre on the box, rotate
+by -yaw, divide by the length), drop the ground (the lowest `ground_clearance` metres of the box), skip vehicles with
+fewer than `min_points` points left, resample to the network's input size (FPS down, cyclic repetition up). The
+dropped band's points inside the box's own footprint (tyres, wheel arches, the road under the body) are kept aside:
+the measured merge publishes them, the network never sees them. The node, the offline tools, training-data
+generation and evaluation all call these functions; the `Preprocessing` a model was trained with is stored in its
+checkpoint.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -63,6 +65,9 @@ class CroppedVehicle:
     # track fusion: `normalized` is the track's fused partial; its last len(current_source) rows are this frame's
     # points `measured[current_source]` (as the track stored them: voxel-thinned, aligned, in its mean placement)
     current_source: np.ndarray | None = None
+    # this frame's points of the ground band inside the box's footprint (`footprint_band`), normalised (K, 3): not
+    # fed to the network, pooled by the measured merge (tyres, wheel arches, the road under the body)
+    band: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
 
     @property
     def current_rows(self) -> int | None:
@@ -75,9 +80,19 @@ def above_ground(normalized: np.ndarray, box: Box3D, ground_clearance: float) ->
     return normalized[:, 2] * box.size[0] >= -box.size[2] / 2 + ground_clearance
 
 
+def footprint_band(normalized: np.ndarray, box: Box3D, ground_clearance: float) -> np.ndarray:
+    """Bool (M,): normalised points of the ground band (below `ground_clearance` metres above the box floor, not
+    below the floor) inside the box's own footprint (the crop margin left out)."""
+    length, width, height = box.size
+    above_floor = normalized[:, 2] * length + height / 2
+    return ((above_floor >= 0.0) & (above_floor < ground_clearance) & (np.abs(normalized[:, 0]) <= 0.5)
+            & (np.abs(normalized[:, 1]) * length <= width / 2))
+
+
 def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessing
                   ) -> tuple[list[CroppedVehicle], list[Box3D]]:
-    """(vehicles with at least `min_points` points above the ground, boxes skipped for too few points).
+    """(vehicles with at least `min_points` points above the ground, boxes skipped for too few points); each
+    vehicle also keeps its ground band's points in the footprint (`CroppedVehicle.band`).
 
     `points` (N, 3) finite, `boxes` valid (see `geometry.box_problem`); both in the same frame.
     """
@@ -91,7 +106,8 @@ def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessin
         if int(keep.sum()) < prep.min_points:
             too_few.append(box)
         else:
-            vehicles.append(CroppedVehicle(box, measured[keep], normalized[keep]))
+            band = normalized[footprint_band(normalized, box, prep.ground_clearance)]
+            vehicles.append(CroppedVehicle(box, measured[keep], normalized[keep], band=band))
     return vehicles, too_few
 
 

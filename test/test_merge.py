@@ -215,3 +215,19 @@ def test_merge_takes_each_distinct_point_once():
     assert merged.is_measured.sum() == 30                        # each measured point once: repeats are the network's
     only_measured = merge_measured(measured, measured, 70)        # nothing new from the network: mirror repeated
     assert only_measured.is_measured.sum() == 30 and len(only_measured.points) == 70
+
+
+def test_the_pool_takes_the_ground_band_and_indexes_it_after_the_partial():
+    """Ground-band points (tyres the network is not fed) are pooled like measured points: kept where nothing else
+    lies, their `measured_row` counting on after the partial's rows."""
+    rng = np.random.default_rng(12)
+    partial = (rng.random((600, 3)) * np.array([1.0, 0.02, 0.3]) + np.array([-0.5, 0.2, -0.1])).astype(np.float32)
+    completion = (rng.random((2048, 3)) * np.array([1.0, 0.4, 0.3]) - np.array([0.5, 0.2, 0.1])).astype(np.float32)
+    band = np.array([[0.3, 0.2, -0.16], [-0.3, 0.2, -0.16], [0.31, 0.19, -0.165]], np.float32)   # two tyres' bottoms
+    merged = merge_with_pool(completion, partial, band=band)
+    from_band = merged.measured_row >= len(partial)
+    assert from_band.sum() >= 2
+    np.testing.assert_array_equal(merged.points[from_band], band[merged.measured_row[from_band] - len(partial)])
+    kept = merged.measured_row[merged.is_measured & ~from_band]
+    np.testing.assert_array_equal(merged.points[merged.is_measured & ~from_band], partial[kept])
+    assert not (merge_with_pool(completion, partial).measured_row >= len(partial)).any()

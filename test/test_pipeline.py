@@ -192,3 +192,31 @@ def test_refined_boxes_come_out_with_the_published_ids(completer: VehicleComplet
     moved_box = box_from_frame(box, np.array([0.25, 0.0, 0.0, 0.1, math.log(1.1), 0.0, 0.0]))
     assert np.allclose(moved_box.center, (1.0, 3.0, 0.5)) and math.isclose(moved_box.yaw, math.pi / 2 + 0.1)
     assert math.isclose(moved_box.size[0], 4.4) and moved_box.instance_id == 7
+
+
+@pytest.mark.parametrize(("include", "merge"), [(True, True), (False, True), (True, False)])
+def test_tyres_below_the_ground_cut_are_published_as_measured_points(completer: VehicleCompleter, include,
+                                                                    merge) -> None:
+    """A car's left side and its tyres' bottoms (in the lowest 0.1 m, which the network is not fed): with the
+    measured merge the tyre points come out as they were measured (generated=0, once each); without it, not at
+    all, as before."""
+    rng = np.random.default_rng(21)
+    box = Box3D((10.0, 3.0, -0.9), (4.5, 1.8, 1.5), 0.3, "car", 7)
+    side = box_surface_points(box, 1200, rng)[:600]
+    side = side[normalize(side, box)[:, 2] * 4.5 > -0.75 + 0.15]     # the body, above the ground cut
+    local = np.concatenate([rng.uniform(-0.3, 0.3, (40, 1)) + x for x in (1.4, -1.4)])
+    tyres_local = np.concatenate([local, np.full((80, 1), 0.9), rng.uniform(0.01, 0.08, (80, 1))], 1)
+    cos, sin = math.cos(box.yaw), math.sin(box.yaw)
+    tyres = (tyres_local - [0, 0, 0.75]) @ np.array([[cos, sin, 0], [-sin, cos, 0], [0, 0, 1]]) + box.center
+    engine = VehicleCompleter(completer.model, include_input_points=include, measured_merge=merge)
+    result = engine.complete_frame(np.concatenate([side, tyres]).astype(np.float32), [box])
+    low = normalize(result.points, box)[:, 2] * 4.5 < -0.75 + 0.1 - 1e-4
+    gap = np.sqrt(((result.points[low][:, None] - tyres[None]) ** 2).sum(-1)).min(1) if low.any() else np.zeros(0)
+    as_measured = low & (result.generated == 0)
+    if merge:
+        assert as_measured.sum() >= 10                                # tyre points, as measured
+        assert (gap[(result.generated == 0)[low]] < 1e-4).all()
+        assert len(np.unique(result.points[as_measured], axis=0)) == as_measured.sum()
+        assert len(result.points[result.generated == 0]) >= len(side) * include + as_measured.sum()
+    else:
+        assert not as_measured.any()

@@ -6,12 +6,12 @@ import pytest
 import torch
 
 from gd_completion.errors import CheckpointError
-from gd_completion.geometry import Box3D
+from gd_completion.geometry import Box3D, normalize
 from gd_completion.model import GGDNet
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, load_model, save_checkpoint
 from gd_completion.model.network import box_shape
 from gd_completion.pipeline import FrameStats, VehicleCompleter
-from gd_completion.preprocess import Preprocessing, crop_vehicles, network_input
+from gd_completion.preprocess import Preprocessing, crop_vehicles, footprint_band, network_input
 from gd_completion.sampling import resample_indices
 
 
@@ -155,3 +155,19 @@ def test_training_data_records_its_preprocessing():
     data = build_dataset(2, seed=3, n_input=64, n_gt=64, preprocessing=prep)
     assert data["metadata"]["preprocessing"] == prep.to_dict()
     assert (data["n_points"] >= 30).all()
+
+
+def test_the_ground_band_in_the_footprint_is_kept_aside_not_fed():
+    """The ground cut's points inside the box's own footprint (tyres, wheel arches) are kept as the vehicle's band;
+    those in the crop margin or below the box floor (road) are not, and none of them is in the network's points."""
+    box = Box3D((10.0, 0.0, 0.75), (4.0, 2.0, 1.5), 0.0, "car", 3)
+    body = np.array([[10.0, 1.0, 1.0], [11.9, 0.9, 1.4], [8.1, -0.9, 0.2], [9.0, 1.0, 0.6]], np.float32)
+    tyres = np.array([[11.3, 0.95, 0.05], [8.7, -0.95, 0.02]], np.float32)   # in the band, inside the footprint
+    road = np.array([[12.05, 0.0, 0.05], [10.0, 1.06, 0.03], [10.0, 0.0, -0.05]], np.float32)  # margin, below floor
+    vehicles, _ = crop_vehicles(np.concatenate([body, tyres, road]), [box], Preprocessing(min_points=4))
+    (vehicle,) = vehicles
+    np.testing.assert_array_equal(vehicle.measured, body)
+    np.testing.assert_allclose(vehicle.band, normalize(tyres, box), atol=1e-6)
+    assert footprint_band(normalize(tyres, box), box, 0.1).all()
+    assert not footprint_band(normalize(road, box), box, 0.1).any()
+    assert not footprint_band(normalize(body, box), box, 0.1).any()

@@ -125,13 +125,16 @@ class NetworkOutputs:
 
 
 def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
-                      sizes: np.ndarray | Sequence[Sequence[float]] | None = None, max_batch: int = 32
-                      ) -> NetworkOutputs:
+                      sizes: np.ndarray | Sequence[Sequence[float]] | None = None, max_batch: int = 32,
+                      bands: Sequence[np.ndarray] | None = None) -> NetworkOutputs:
     """`network_outputs` of partial clouds of any size and their completions after the measured merge with a pool
     of all their measured points (`merge.merge_with_pool`), as the pipeline does for single frames and tracks'
-    fused partials alike."""
+    fused partials alike; `bands`: each cloud's ground-band points (`preprocess.CroppedVehicle.band`), pooled too."""
     partials = [np.asarray(p, np.float32).reshape(-1, 3) for p in partials]
+    if bands is not None and len(bands) != len(partials):
+        raise ValueError(f"{len(partials)} partial clouds but {len(bands)} ground bands")
     batch = _resampled(partials, model.config.num_input)[0]
     generated, completion = network_outputs(model, batch, sizes, max_batch=max_batch)
-    merged = [merge_with_pool(c, p).points for p, c in zip(partials, completion)]
+    merged = [merge_with_pool(c, p, band=None if bands is None else bands[i]).points
+              for i, (p, c) in enumerate(zip(partials, completion))]
     return NetworkOutputs(generated, completion, np.stack(merged) if merged else completion.copy())

@@ -247,7 +247,8 @@ def classify(classifier: PointNetClassifier, clouds: Sequence[np.ndarray] | np.n
 class LabelledSet:
     """Observations to classify: normalised partial inputs (any size) with their boxes' sizes (S, 3) (length,
     width, height; m), an upper-bound cloud each (complete shape or aggregate), the label shown per observation
-    (`truth`) and the classes counted right for it (`accepted`, (S, len(CLASSES)) bool)."""
+    (`truth`) and the classes counted right for it (`accepted`, (S, len(CLASSES)) bool); real scans also their
+    ground-band points (`preprocess.CroppedVehicle.band`: measured, not fed to the network, pooled by the merge)."""
 
     name: str
     source: str
@@ -257,6 +258,7 @@ class LabelledSet:
     truth: list[str]
     accepted: np.ndarray
     upper_bound: str = "complete shapes"
+    bands: list[np.ndarray] | None = None
 
 
 def _one_hot(labels: np.ndarray) -> np.ndarray:
@@ -325,7 +327,7 @@ def pandaset_set(root: str | Path, *, preprocessing: Preprocessing | None = None
         vehicles = dict(list(vehicles.items())[:max_vehicles])
     prep = replace(preprocessing or Preprocessing(), min_points=1)
     tracks = collect_tracks(sequence, vehicles, prep, sensors=tuple(sensors))
-    partials, sizes, complete, truth, accepted = [], [], [], [], []
+    partials, bands, sizes, complete, truth, accepted = [], [], [], [], [], []
     n_vehicles = 0
     for track in tracks.values():
         picks = track.input_frames(MIN_INPUT_POINTS, max_per_vehicle)
@@ -336,6 +338,7 @@ def pandaset_set(root: str | Path, *, preprocessing: Preprocessing | None = None
         row = np.isin(CLASSES, pandaset_classes(track.label))
         for k in picks:
             partials.append(np.asarray(track.points[k], np.float32))
+            bands.append(track.bands[k])
             sizes.append(track.boxes[k].size)
             complete.append(aggregate)
             truth.append(track.label)
@@ -345,7 +348,7 @@ def pandaset_set(root: str | Path, *, preprocessing: Preprocessing | None = None
     return LabelledSet("PandaSet 002", where,
                        partials, np.array(sizes, np.float64).reshape(-1, 3), complete, truth,
                        np.array(accepted, bool).reshape(-1, len(CLASSES)),
-                       f"multi-frame aggregate, {n_aggregate} points")
+                       f"multi-frame aggregate, {n_aggregate} points", bands)
 
 
 @dataclass
@@ -389,10 +392,12 @@ def evaluate_set(classifier: PointNetClassifier, model: GGDNet, labelled: Labell
         empty = {n: np.zeros(0, np.int64) for n in INPUT_NAMES}
         return SetResult(labelled.name, labelled.source, labelled.upper_bound, [], empty,
                          {n: np.zeros(0, bool) for n in INPUT_NAMES})
-    nets = published_outputs(model, labelled.partials, labelled.sizes, max_batch=max_batch)
+    nets = published_outputs(model, labelled.partials, labelled.sizes, max_batch=max_batch, bands=labelled.bands)
+    measured = labelled.partials if labelled.bands is None else \
+        [np.concatenate([p, b]) for p, b in zip(labelled.partials, labelled.bands)]
     clouds: dict[str, Sequence[np.ndarray] | np.ndarray] = {
-        "input": labelled.partials,
-        "mirror_template": [prior_outputs(p, s)["mirror_template"] for p, s in zip(labelled.partials, labelled.sizes)],
+        "input": measured,
+        "mirror_template": [prior_outputs(p, s)["mirror_template"] for p, s in zip(measured, labelled.sizes)],
         "ggd": nets.completion, "ggd_merge": nets.published, "complete": labelled.complete}
     rows = np.arange(len(labelled.partials))
     predicted = {name: classify(classifier, clouds[name], seed=seed) for name in INPUT_NAMES}

@@ -14,7 +14,7 @@ from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_senso
 from gd_completion.errors import DataFormatError
 from gd_completion.geometry import Box3D, box_problem, finite_mask, normalize
 from gd_completion.model.network import GGDNet
-from gd_completion.preprocess import Preprocessing, above_ground, crop_vehicles
+from gd_completion.preprocess import CroppedVehicle, Preprocessing, above_ground, crop_vehicles
 
 from .baselines import BASELINE_NAMES, mirror_symmetry, published_outputs
 from .box_noise import BoxNoise, noisy_box, reframe
@@ -66,7 +66,8 @@ class VehicleTrack:
     boxes: list[Box3D] = field(default_factory=list)  # world-frame box per entry
     sensors: list[int] = field(default_factory=list)  # PandaSet sensor id per entry
     origins: list[np.ndarray] = field(default_factory=list)  # world sensor position (poses.json) per entry
-    noisy: list[tuple[np.ndarray, Box3D] | None] = field(default_factory=list)  # (normalised points, noisy box)
+    noisy: list[CroppedVehicle | None] = field(default_factory=list)  # the crop of the noisy box
+    bands: list[np.ndarray] = field(default_factory=list)  # normalised (K, 3) per entry: `CroppedVehicle.band`
     in_box: list[np.ndarray] = field(default_factory=list)  # normalised (M', 3) per entry: every in-box point,
     # the ground band (the lowest `ground_clearance` of the box) included
 
@@ -149,15 +150,16 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
             cropped = crop_vehicles(points, boxes, prep)[0]
             in_box = {v.box.instance_id: v.normalized
                       for v in crop_vehicles(points, boxes, replace(prep, ground_clearance=0.0, min_points=1))[0]}
-            noisy: dict[int, tuple[np.ndarray, Box3D]] = {}
+            noisy: dict[int, CroppedVehicle] = {}
             if noise is not None:
                 shaken = [noisy_box(v.box, noise, (v.box.instance_id, index, sensor)) for v in cropped
                           if len(v.normalized) >= noise_min_points]
-                noisy = {v.box.instance_id: (v.normalized, v.box) for v in crop_vehicles(points, shaken, prep)[0]}
+                noisy = {v.box.instance_id: v for v in crop_vehicles(points, shaken, prep)[0]}
             for vehicle in cropped:
                 track = by_id[vehicle.box.instance_id]
                 track.frames.append(int(index))
                 track.points.append(vehicle.normalized)
+                track.bands.append(vehicle.band)
                 track.boxes.append(vehicle.box)
                 track.sensors.append(int(sensor))
                 track.origins.append(np.asarray(origin, np.float64))
@@ -320,11 +322,12 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     t2 = time.perf_counter()
     partials = [t.points[k] for t, k in meta]
     sizes = np.array([t.boxes[k].size for t, k in meta], np.float64).reshape(-1, 3)
-    clean = published_outputs(model, partials, sizes, max_batch=max_batch)
+    clean = published_outputs(model, partials, sizes, max_batch=max_batch, bands=[t.bands[k] for t, k in meta])
     noisy_meta = [i for i, (t, k) in enumerate(meta) if noise is not None and t.noisy[k] is not None]
-    noisy_in = [pair for i in noisy_meta if (pair := meta[i][0].noisy[meta[i][1]]) is not None]
-    noisy = published_outputs(model, [p for p, _ in noisy_in],
-                              np.array([b.size for _, b in noisy_in], np.float64).reshape(-1, 3), max_batch=max_batch)
+    noisy_in = [crop for i in noisy_meta if (crop := meta[i][0].noisy[meta[i][1]]) is not None]
+    noisy = published_outputs(model, [v.normalized for v in noisy_in],
+                              np.array([v.box.size for v in noisy_in], np.float64).reshape(-1, 3), max_batch=max_batch,
+                              bands=[v.band for v in noisy_in])
     noisy_nets = {i: (noisy.generated[j], noisy.completion[j], noisy.published[j]) for j, i in enumerate(noisy_meta)}
     seconds["network"] = time.perf_counter() - t2
 
@@ -334,7 +337,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     for i, (track, k) in enumerate(meta):
         partial, box = track.points[k], track.boxes[k]
         ref_random, ref_voxel, images = refs[track.uuid]
-        outputs = _method_outputs(partial, box.size, n_out, clean.generated[i], clean.completion[i],
+        outputs = _method_outputs(partial, track.bands[k], box.size, n_out, clean.generated[i], clean.completion[i],
                                    clean.published[i])
         item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], len(partial),
                             size_bin(len(partial)), {}, {})
@@ -354,8 +357,10 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             item.band_coverage[name] = float(to_band[low].mean()) * COVERAGE_SCALE if low.any() else math.nan
             item.fidelity_band[name] = float(nearest_sq(track.in_box[k], out).mean()) * FIDELITY_SCALE
         if i in noisy_nets:
-            noisy_partial, shaken = track.noisy[k]  # type: ignore[misc]  # k is in noisy_nets: not None
-            shaken_outputs = _method_outputs(noisy_partial, shaken.size, n_out, *noisy_nets[i])
+            crop = track.noisy[k]
+            assert crop is not None   # k is in noisy_nets
+            shaken = crop.box
+            shaken_outputs = _method_outputs(crop.normalized, crop.band, shaken.size, n_out, *noisy_nets[i])
             stacked = reframe(np.concatenate([shaken_outputs[n] for n in BASELINE_NAMES]), shaken, box)
             bounds = np.cumsum(np.array([0] + [len(shaken_outputs[n]) for n in BASELINE_NAMES]))
             for j, name in enumerate(BASELINE_NAMES):
@@ -374,11 +379,14 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
                           sensors, noise, random_points, reference_points)
 
 
-def _method_outputs(partial: np.ndarray, size: Sequence[float], n_out: int, generation: np.ndarray,
+def _method_outputs(partial: np.ndarray, band: np.ndarray, size: Sequence[float], n_out: int, generation: np.ndarray,
                     completion: np.ndarray, merged: np.ndarray) -> dict[str, np.ndarray]:
-    """Every method's output (`BASELINE_NAMES`) for one normalised partial and its box `size`, given the
-    network's generation-only, completion and merged outputs."""
-    return {"input": partial, "mirror": mirror_symmetry(partial), **prior_outputs(partial, np.asarray(size), n_out),
+    """Every method's output (`BASELINE_NAMES`) for one normalised partial, its ground-band points `band` (the
+    measured points the network is not fed, pooled by the merge: the input and the box priors get them too) and its
+    box `size`, given the network's generation-only, completion and merged outputs."""
+    measured = np.concatenate([partial, band]) if len(band) else partial
+    return {"input": measured, "mirror": mirror_symmetry(measured),
+            **prior_outputs(measured, np.asarray(size), n_out),
             "generation": generation, "ggd": completion, "ggd_merge": merged}
 
 
