@@ -83,6 +83,11 @@ SETTINGS: dict[str, Setting] = {
     "transform_tolerance": Setting(0.05, "Seconds a stamp may lie outside the transforms received for it; within, the "
                                          "nearest transform is used (no extrapolation), beyond, the boxes are skipped.",
                                    0.0, 10.0),
+    "transform_wait": Setting(0.1, "Seconds to wait for /tf to reach a frame's stamp before its boxes from another "
+                                   "frame are moved (tf2's message filter; the transform often arrives after the "
+                                   "cloud): live the worker waits, offline the bag is read that much further (bag "
+                                   "time); then the nearest transform within transform_tolerance is used, or the "
+                                   "boxes are skipped. 0 = no wait.", 0.0, 2.0),
     "include_input_points": Setting(True, "Also publish the measured points of each completed vehicle (generated=0); "
                                           "without them, a merged completion's own measured points still carry "
                                           "generated=0.", live=True, flag="--no-input-points"),
@@ -178,6 +183,7 @@ class CompletionSettings:
     sync_tolerance: float
     use_tf: bool
     transform_tolerance: float
+    transform_wait: float
     include_input_points: bool
     measured_merge: bool
     limits: FrameLimits
@@ -224,7 +230,7 @@ class CompletionSettings:
                    class_preset=str(v["class_preset"]),
                    class_map=tuple(str(e) for e in v["class_map"] if str(e).strip()),
                    sync_tolerance=float(v["sync_tolerance"]), use_tf=bool(v["use_tf"]),
-                   transform_tolerance=float(v["transform_tolerance"]),
+                   transform_tolerance=float(v["transform_tolerance"]), transform_wait=float(v["transform_wait"]),
                    include_input_points=bool(v["include_input_points"]),
                    measured_merge=bool(v["measured_merge"]), limits=limits, track_fusion=bool(v["track_fusion"]),
                    publish_fused_points=bool(v["publish_fused_points"]), fusion=fusion, track_ids=str(v["track_ids"]),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections import Counter
+from collections import Counter, deque
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -151,10 +151,21 @@ def complete_bag(src: str | Path, out: str | Path, settings: CompletionSettings 
                                        "use --workers 1")
                     pool.completer.reset_tracks()
 
-                def submit(decided: list[tuple[RecordedCloud, Any]]) -> None:
-                    """Submit the clouds whose boxes are known (or known to be none)."""
-                    for cloud, box_set in decided:
+                wait_ns = round(settings.transform_wait * 1e9) if transforms is not None else 0
+                decided_clouds: deque[tuple[int, RecordedCloud, Any]] = deque()   # (wait until, cloud, boxes)
+
+                def submit(decided: list[tuple[RecordedCloud, Any]], now_ns: int | None) -> None:
+                    """Submit, in order, the clouds whose boxes are known (or known to be none). A cloud with boxes
+                    that no transform received so far moves into its frame waits, and the clouds behind it, until
+                    the bag's time `now_ns` is `transform_wait` past its pairing (the node's worker waits as long
+                    for /tf); None: the bag ended, no more waiting."""
+                    decided_clouds.extend((now_ns + wait_ns if now_ns is not None else 0, c, b) for c, b in decided)
+                    while decided_clouds:
+                        until, cloud, box_set = decided_clouds[0]
                         boxes, missing = cloud.boxes_in_frame(box_set, transforms)
+                        if missing and now_ns is not None and now_ns < until:
+                            return
+                        decided_clouds.popleft()
                         if transforms is None:
                             summary.boxes_wrong_frame += missing
                         else:
@@ -176,13 +187,14 @@ def complete_bag(src: str | Path, out: str | Path, settings: CompletionSettings 
                             summary.copied_messages += 1
 
                 for conn, timestamp, raw in iter_raw(reader, copied):
+                    submit([], timestamp)   # the clouds whose wait ended before this message
                     queue.put((conns[conn.id], timestamp, raw))
                     cloud, decided = pairing.feed(conn.topic, timestamp, raw)
                     if cloud is not None:
                         waiting[cloud.index] = queue.hold(cloud)
-                    submit(decided)
+                    submit(decided, timestamp)
                     write(queue.ready())
-                submit(pairing.close())
+                submit(pairing.close(), None)
                 write(queue.rest())
                 parameters = {"completer": pool.run(completer_parameters).result(), "cloud_topic": cloud_topic,
                               "boxes_topic": boxes_topic, "output_topic": output_topic,

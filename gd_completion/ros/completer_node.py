@@ -350,7 +350,8 @@ class CompleterNode(Node):
         frame_id = header.frame_id
         stamp_ns = stamp_to_ns(header.stamp)
         problems: list[str] = []
-        boxes, missing = boxes_in_frame(pair.boxes, frame_id, stamp_ns, self._tf, problems, self.params.transform_wait)
+        boxes, missing = boxes_in_frame(pair.boxes, frame_id, stamp_ns, self._tf, problems,
+                                        self.params.settings.transform_wait)
         if missing and self._tf is None:
             self._count("boxes_wrong_frame", missing)
             self._warn("wrong_frame", f"skipping {missing} box(es) not in the cloud's frame '{frame_id}' "

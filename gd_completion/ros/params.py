@@ -35,7 +35,6 @@ class CompleterParams:
     sync_max_wait: float
     queue_size: int
     fresh_frame_age: float
-    transform_wait: float
     max_boxes_per_message: int
     settings: CompletionSettings
 
@@ -74,10 +73,6 @@ NODE_SETTINGS: dict[str, Setting] = {
                                                   "by it (drop_stale); else it is completed as is. Lower latency; may "
                                                   "answer fewer frames. 0 = complete the newest pending frame "
                                                   "whatever its age.", 0.0, 10.0, live=True),
-    "transform_wait": Setting(0.1, "Seconds the worker waits for /tf to reach a frame's stamp before it moves boxes "
-                                   "from another frame (tf2's message filter; the transform often arrives after "
-                                   "the cloud); then the nearest transform within transform_tolerance is used, or "
-                                   "the boxes are skipped. 0 = no wait.", 0.0, 2.0),
     "max_boxes_per_message": Setting(1000, "A boxes message with more boxes is refused before it is converted "
                                            "(skipped_box_message_too_large).", 1, 1_000_000),
 }
