@@ -15,6 +15,7 @@ from interfaces import ros_test_domain_id
 
 from gd_completion import __version__
 from gd_completion.bags.completion import complete_bag
+from gd_completion.bags.frames import read_frame
 from gd_completion.bags.messages import header, marker_array_msg, pointcloud2_msg, stamp
 from gd_completion.bags.provenance import read_provenance
 from gd_completion.bags.reader import iter_raw, open_bag
@@ -27,7 +28,6 @@ from gd_completion.pointcloud2 import read_points, write_points
 from gd_completion.ros.player import CLOCK_TOPIC
 from gd_completion.settings import CompletionSettings
 from gd_completion.stamp_sync import SYNC_TOLERANCE_S, stamp_to_ns
-from gd_completion.tools.render import read_frame
 
 pytestmark = pytest.mark.integration  # processes, ROS nodes, builds or bags: the slow part of the suite
 

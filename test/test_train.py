@@ -150,8 +150,8 @@ def test_warm_start_copies_matching_tensors_only(tmp_path):
 
 
 def test_dataset_cache_is_keyed_on_what_shapes_the_data(tmp_path, monkeypatch, shared_data):
+    from gd_completion.synth import cache as data_cache
     from gd_completion.synth.dataset import build_dataset, load_dataset, save_dataset
-    from gd_completion.tools import train as train_tool
 
     meshes = tmp_path / "meshes"
     meshes.mkdir()
@@ -162,12 +162,12 @@ def test_dataset_cache_is_keyed_on_what_shapes_the_data(tmp_path, monkeypatch, s
         builds.append(kwargs)
         return build_dataset(*args, **kwargs)
 
-    monkeypatch.setattr(train_tool, "build_dataset", counting_build)
+    monkeypatch.setattr(data_cache, "build_dataset", counting_build)
     cache = tmp_path / "cache"
-    spec = train_tool.DatasetSpec(2, 7, 32, 64, meshes)
+    spec = data_cache.DatasetSpec(2, 7, 32, 64, meshes)
 
     def cached():
-        return train_tool.cached_dataset(cache, "train", spec, workers=1)
+        return data_cache.cached_dataset(cache, "train", spec, workers=1)
 
     first = cached()
     assert len(builds) == 1 and builds[0]["n_input"] == 32 and builds[0]["n_gt"] == 64
@@ -184,11 +184,11 @@ def test_dataset_cache_is_keyed_on_what_shapes_the_data(tmp_path, monkeypatch, s
     cached()
     assert len(builds) == 2
     # a new generator version, other sizes, another seed: each rebuilds
-    monkeypatch.setattr(train_tool, "GENERATOR_VERSION", "gd_completion.synth/test")
+    monkeypatch.setattr(data_cache, "GENERATOR_VERSION", "gd_completion.synth/test")
     cached()
-    spec = train_tool.DatasetSpec(2, 7, 16, 64, meshes)
+    spec = data_cache.DatasetSpec(2, 7, 16, 64, meshes)
     cached()
-    spec = train_tool.DatasetSpec(2, 8, 16, 64, meshes)
+    spec = data_cache.DatasetSpec(2, 8, 16, 64, meshes)
     cached()
     assert len(builds) == 5 and len(list(cache.glob("*.npz"))) == 5
     # a file under the expected name without the key (an older cache) or corrupt is made again, not trusted
