@@ -7,8 +7,9 @@ merged in several ways, beside the network alone and the mirror + template prior
 A SPEC is `pool:VOXEL:NETWORK_WEIGHT:MIRROR_WEIGHT` (one measured point per VOXEL voxel, 0: all of them; the
 weights of the weighted FPS, `kernels.fps_pruned`), `fed` (the 512 points fed to the network, unweighted: the
 merge before model v3) or `sor:K:Z` (the shipped merge after dropping the completion's points whose mean distance
-to their K nearest is above the mean + Z standard deviations). The shipped merge is `merge.merge_with_pool`
-(printed as "shipped")."""
+to their K nearest is above the mean + Z standard deviations); the variants pool the points above the ground cut only.
+The shipped merge is `merge.merge_with_pool` with the ground band's points in the box's footprint pooled too, as the
+pipeline does (printed as "shipped"); the mirror + template prior gets those points as well."""
 from __future__ import annotations
 
 import argparse
@@ -31,12 +32,13 @@ from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.preprocess import Preprocessing
 from gd_completion.sampling import voxel_first_indices
 
-# (completion, partial, rows fed to the network, box size) -> output points
-Merge = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+# (completion, partial, rows fed to the network, box size, ground-band points) -> output points
+Merge = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
 def weighted(voxel: float, network: float, mirror: float) -> Merge:
-    def merge(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray) -> np.ndarray:
+    def merge(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray,
+              band: np.ndarray) -> np.ndarray:
         pool = partial[voxel_first_indices(partial, voxel)] if voxel else partial
         union = np.ascontiguousarray(np.concatenate([pool, mirrored(pool), completion]), np.float32)
         weights = np.full(len(union), network, np.float32)
@@ -48,7 +50,8 @@ def weighted(voxel: float, network: float, mirror: float) -> Merge:
 def outliers_dropped(k: int, z: float) -> Merge:
     """The shipped merge after dropping the completion's isolated points: mean distance to their k nearest
     completion points above the cloud's mean + z standard deviations."""
-    def merge(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray) -> np.ndarray:
+    def merge(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray,
+              band: np.ndarray) -> np.ndarray:
         spread = cKDTree(completion).query(completion, k + 1)[0][:, 1:].mean(1)
         keep = spread <= spread.mean() + z * spread.std()
         pool = partial[voxel_first_indices(partial, POOL_VOXEL)]
@@ -58,7 +61,8 @@ def outliers_dropped(k: int, z: float) -> Merge:
     return merge
 
 
-def fed_only(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray) -> np.ndarray:
+def fed_only(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray,
+             band: np.ndarray) -> np.ndarray:
     pool = partial[fed[:min(len(partial), len(fed))]]
     union = np.ascontiguousarray(np.concatenate([pool, mirrored(pool), completion]), np.float32)
     return union[fps_pruned(union, len(completion))]
@@ -81,13 +85,14 @@ def main() -> None:
         picks = track.input_frames(pe.MIN_INPUT_POINTS, 8)
         if picks and len(set(track.frames)) > 1:
             reference = pe.random_reference(track.aggregate(), pe.RANDOM_REFERENCE_POINTS, seed=track.instance_id)
-            observations += [(track.points[k], np.array(track.boxes[k].size), reference) for k in picks]
+            observations += [(track.points[k], np.array(track.boxes[k].size), reference, track.bands[k])
+                             for k in picks]
     batch, rows = _resampled([o[0] for o in observations], model.config.num_input)
     completions = network_outputs(model, batch, np.array([o[1] for o in observations]))[1]
     merges: dict[str, Merge] = {
-        "network alone": lambda c, p, r, s: c,
-        "mirror + template": lambda c, p, r, s: prior_outputs(p, s, len(c))["mirror_template"],
-        "shipped": lambda c, p, r, s: merge_with_pool(c, p).points}
+        "network alone": lambda c, p, r, s, b: c,
+        "mirror + template": lambda c, p, r, s, b: prior_outputs(np.concatenate([p, b]), s, len(c))["mirror_template"],
+        "shipped": lambda c, p, r, s, b: merge_with_pool(c, p, band=b).points}
     for spec in args.variants:
         kind, *values = spec.split(":")
         merges[spec] = fed_only if kind == "fed" else outliers_dropped(int(values[0]), float(values[1])) \
@@ -98,9 +103,9 @@ def main() -> None:
     for name, merge in merges.items():
         coverage, fidelity, where = [], [], []
         spent = 0.0
-        for (partial, size, reference), completion, fed in zip(observations, completions, rows):
+        for (partial, size, reference, band), completion, fed in zip(observations, completions, rows):
             start = time.perf_counter()
-            out = merge(completion, partial, fed, size)
+            out = merge(completion, partial, fed, size, band)
             spent += time.perf_counter() - start
             coverage.append(nearest_sq(reference, out).mean() * 1e3)
             fidelity.append(nearest_sq(partial, out).mean() * 1e3)
