@@ -164,7 +164,9 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
                  "The same observations and outputs; the reference is a random sample "
                  f"({result.random_points:,} points) of every in-box point of every frame and sensor, the lowest "
                  "0.1 m of the box (tyres, wheel arches and the road under them, which the crop's ground cut drops "
-                 "from the inputs) included.\n\n" + _metric_table(items, "coverage_band")
+                 "from the network's inputs) included. The band's points inside the box's footprint are pooled by "
+                 "the measured merge, and are part of the raw input and of the priors' inputs too.\n\n"
+                 + _metric_table(items, "coverage_band")
                  + "\n\nThat reference's ground-band points alone (coverage error x1e3 of the band; observations "
                  "whose reference has band points):\n\n" + _metric_table(items, "band_coverage"))
     parts.append("### Ground band kept: fidelity x1e3 (every in-box point of the frame, band included -> output)\n\n"
