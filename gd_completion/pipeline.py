@@ -242,9 +242,10 @@ class VehicleCompleter:
         vehicles, too_few = crop_vehicles(points, [usable[i] for i in kept], self.preprocessing)
         for box in too_few:
             stats.skip(box, "too_few_points")
-        for vehicle in (v for v in vehicles if len(v.measured) > self.limits.max_points_per_vehicle):
+        limit = self.limits.max_points_per_vehicle   # the ground band's points count too: the merge pools them
+        for vehicle in (v for v in vehicles if len(v.measured) + len(v.band) > limit):
             stats.skip(vehicle.box, "too_many_points")
-        return [v for v in vehicles if len(v.measured) <= self.limits.max_points_per_vehicle]
+        return [v for v in vehicles if len(v.measured) + len(v.band) <= limit]
 
     def complete_normalized(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None = None,
                             bands: Sequence[np.ndarray] | None = None) -> np.ndarray:
@@ -322,7 +323,9 @@ class VehicleCompleter:
         points are published; without them, they keep this frame's measured coordinates, not those of the
         track's placement); with track fusion but without `publish_fused_points`, the completion's points from
         the track's earlier frames count as generated=1, as do a reused completion's measured points when the
-        measured points are not published. The settings are read once per frame."""
+        measured points are not published. The ground band's points the merge keeps (`CroppedVehicle.band`: tyres
+        below the ground cut, never among the measured points published) stay in the completion with generated=0
+        (generated=1 in a reused completion). The settings are read once per frame."""
         stats = FrameStats()
         deadline = time.monotonic() + self.limits.time_budget_s
         include = self.include_input_points
@@ -394,7 +397,10 @@ class VehicleCompleter:
             if result is not None:
                 stats.completions_run += 1
                 if cache is not None and vehicle.box.instance_id >= 0:
-                    cache.store(vehicle.box.instance_id, stamp, vehicle.box.size, result[0], result[1] >= 0,
+                    # measured: rows of the partial (a reuse publishes them afresh); the band's rows stay with the
+                    # completion, published as generated=1 when reused (that frame's tyres, not this one's)
+                    measured = (result[1] >= 0) & (result[1] < len(vehicle.normalized))
+                    cache.store(vehicle.box.instance_id, stamp, vehicle.box.size, result[0], measured,
                                 vehicle.normalized, result[2])
                 outputs.append((*self._fresh_output(vehicle, result[0], result[1], include), result[2]))
             elif decision.cached is not None and not cancelled:
@@ -444,8 +450,8 @@ class VehicleCompleter:
 
     def _cached_output(self, cached: CachedCompletion, include: bool) -> tuple[np.ndarray, np.ndarray]:
         """A cached completion as published: with the measured points published, its points that were measured
-        when it was made are left out (this frame's measured points take their place); else all of them,
-        generated=1 (they are not this frame's measurements)."""
+        above the ground cut when it was made are left out (this frame's measured points take their place; its kept
+        ground-band points stay); else all of them; generated=1 (they are not this frame's measurements)."""
         points = cached.generated if include else cached.points
         return points, np.ones(len(points), np.uint8)
 

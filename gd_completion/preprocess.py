@@ -106,7 +106,7 @@ def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessin
         if int(keep.sum()) < prep.min_points:
             too_few.append(box)
         else:
-            band = normalized[footprint_band(normalized, box, prep.ground_clearance)]
+            band = normalized[~keep & footprint_band(normalized, box, prep.ground_clearance)]
             vehicles.append(CroppedVehicle(box, measured[keep], normalized[keep], band=band))
     return vehicles, too_few
 

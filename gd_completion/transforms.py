@@ -311,6 +311,15 @@ class TransformBuffer:
                     self._lock.wait(left)
             return self._locked_lookup(target, source, stamp, what, self.extrapolation_ns)
 
+    def ready(self, target_frame: str, source_frame: str, stamp_ns: int) -> bool:
+        """Whether a `lookup` at `stamp_ns` cannot improve by waiting for more transforms (what `lookup` with a wait
+        waits for; offline, `complete_bag` reads on for it)."""
+        target, source = _frame(target_frame), _frame(source_frame)
+        if not target or not source or target == source:
+            return True
+        with self._lock:
+            return self._ready(target, source, int(stamp_ns), f"cannot transform {source_frame!r} -> {target_frame!r}")
+
     def _ready(self, target: str, source: str, stamp: int, what: str) -> bool:
         """Whether waiting cannot improve the lookup: every dynamic edge has samples on both sides of the stamp,
         or it fails for a reason later transforms do not mend (unknown or unconnected frames, a stamp too old)."""
@@ -410,6 +419,12 @@ def boxes_to_frame(boxes: Sequence[Box3D], source_frame: str, target_frame: str,
     """Boxes given in `source_frame` expressed in `target_frame` at `stamp_ns` (waiting up to `wait_s` for
     transforms not yet received: `TransformBuffer.lookup`); TransformError when the buffer cannot give it."""
     return transform_boxes(boxes, buffer.lookup(target_frame, source_frame, stamp_ns, wait_s))
+
+
+def transforms_pending(box_set: BoxSet, frame_id: str, stamp_ns: int, buffer: TransformBuffer) -> bool:
+    """Whether moving `box_set`'s boxes into `frame_id` at `stamp_ns` could still improve with later transforms
+    (`TransformBuffer.ready` false for one of their frames)."""
+    return any(not buffer.ready(frame_id, f, stamp_ns) for f in set(box_set.frame_ids) if f != frame_id)
 
 
 def boxes_in_frame(box_set: BoxSet, frame_id: str, stamp_ns: int, buffer: TransformBuffer | None,

@@ -36,9 +36,9 @@ def car_points(rng: np.random.Generator) -> np.ndarray:
     return (local @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) + CAR.center).astype(np.float32)
 
 
-def write_drive(path, late_ns: tuple[int, ...]) -> None:
-    """One cloud and its boxes in `map`; /tf samples 0.2 and 0.1 s before the stamp recorded before them, the ones
-    at and after the stamp recorded `late_ns` after the boxes."""
+def write_drive(path, early_ms: tuple[int, ...] = (-200, -100), late: tuple[tuple[int, int], ...] = ()) -> None:
+    """One cloud and its boxes in `map`; /tf samples at `early_ms` from the stamp recorded before them, and the
+    samples (ms from the stamp, ms recorded after the boxes) of `late`."""
     points = car_points(np.random.default_rng(3))
     table = np.zeros(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     table["x"], table["y"], table["z"] = points[:, 0], points[:, 1], points[:, 2]
@@ -47,13 +47,28 @@ def write_drive(path, late_ns: tuple[int, ...]) -> None:
         tf = add_connection(writer, "/tf", TF_MESSAGE)
         cloud = add_connection(writer, "/points", POINTCLOUD2)
         boxes = add_connection(writer, "/tracks", MARKER_ARRAY)
-        for ns in (STAMP - 200_000_000, STAMP - 100_000_000):
-            writer.write(tf, ns, serialize(tf_static_msg([("map", "lidar", lidar_in_map(ns))], ns), TF_MESSAGE))
+
+        def sample(at_ms: int, recorded_ns: int) -> None:
+            ns = STAMP + at_ms * 1_000_000
+            msg = tf_static_msg([("map", "lidar", lidar_in_map(ns))], ns)
+            writer.write(tf, recorded_ns, serialize(msg, TF_MESSAGE))
+
+        for at_ms in early_ms:
+            sample(at_ms, STAMP + min(at_ms * 1_000_000, 0))
         writer.write(cloud, STAMP + 1, serialize(pointcloud2_msg(write_points(table), "lidar", STAMP), POINTCLOUD2))
         writer.write(boxes, STAMP + 2, serialize(marker_array_msg([in_map], "map", STAMP), MARKER_ARRAY))
-        for ns, late in zip((STAMP, STAMP + 50_000_000), late_ns):
-            writer.write(tf, STAMP + 2 + late,
-                         serialize(tf_static_msg([("map", "lidar", lidar_in_map(ns))], ns), TF_MESSAGE))
+        for at_ms, after_ms in late:
+            sample(at_ms, STAMP + 2 + after_ms * 1_000_000)
+
+
+def complete(bag, out, wait: float):
+    """(summary, published points) of `gd-completion complete` on the drive with `transform_wait` = `wait`."""
+    settings = CompletionSettings.offline(num_threads=1, transform_wait=wait)
+    summary = complete_bag(bag, out, settings, cloud_topic="/points", boxes_topic="/tracks", progress=False)
+    with open_bag(out) as reader:
+        conns = [c for c in reader.connections if c.topic == summary.output_topic]
+        (published,) = [read_points(deserialize(raw, POINTCLOUD2)) for _, _, raw in iter_raw(reader, conns)]
+    return summary, published
 
 
 @pytest.mark.parametrize(("late_ms", "wait", "completed"), [
@@ -62,17 +77,29 @@ def write_drive(path, late_ns: tuple[int, ...]) -> None:
     ((150, 160), 0.1, False),   # it comes after the wait: skipped, counted
 ])
 def test_offline_waits_for_transforms_recorded_after_the_boxes(tmp_path, late_ms, wait, completed):
-    bag, out = tmp_path / "drive", tmp_path / "done"
-    write_drive(bag, tuple(ms * 1_000_000 for ms in late_ms))
-    settings = CompletionSettings.offline(num_threads=1, transform_wait=wait)
-    summary = complete_bag(bag, out, settings, cloud_topic="/points", boxes_topic="/tracks", progress=False)
+    bag = tmp_path / "drive"
+    write_drive(bag, late=((0, late_ms[0]), (50, late_ms[1])))
+    summary, published = complete(bag, tmp_path / "done", wait)
     assert summary.frames == 1
     assert summary.vehicles_completed == int(completed)
     assert summary.boxes_no_transform == int(not completed)
-    with open_bag(out) as reader:
-        conns = [c for c in reader.connections if c.topic == summary.output_topic]
-        (published,) = [read_points(deserialize(raw, POINTCLOUD2)) for _, _, raw in iter_raw(reader, conns)]
     assert (len(published) > 0) == completed
     if completed:   # the car where it is in the lidar frame: the box moved with the transform at its stamp
         centre = np.mean([published["x"], published["y"]], axis=1)
         assert np.linalg.norm(centre - np.array(CAR.center[:2])) < 0.5
+
+
+def test_offline_waits_to_interpolate_when_the_newest_transform_is_within_tolerance(tmp_path):
+    """The newest transform recorded before the boxes is 30 ms old (within transform_tolerance): the node waits for
+    the next one and interpolates, and so does the offline tool (the same output as when it was recorded in time);
+    without the wait it holds the 30 ms old one (the same output as when the next one never comes)."""
+    in_time, late, never = tmp_path / "in_time", tmp_path / "late", tmp_path / "never"
+    write_drive(in_time, early_ms=(-200, -30, 50))
+    write_drive(late, early_ms=(-200, -30), late=((50, 20),))
+    write_drive(never, early_ms=(-200, -30))
+    _, reference = complete(in_time, tmp_path / "a", 0.1)
+    _, waited = complete(late, tmp_path / "b", 0.1)
+    _, held = complete(late, tmp_path / "c", 0.0)
+    _, old = complete(never, tmp_path / "d", 0.1)
+    assert len(reference) > 0 and waited.tobytes() == reference.tobytes()
+    assert held.tobytes() == old.tobytes() != reference.tobytes()

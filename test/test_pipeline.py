@@ -194,23 +194,34 @@ def test_refined_boxes_come_out_with_the_published_ids(completer: VehicleComplet
     assert math.isclose(moved_box.size[0], 4.4) and moved_box.instance_id == 7
 
 
+def car_with_tyres(box: Box3D, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(the body of a car's left side above the ground cut, its two left tyres' bottoms in the lowest 0.1 m of the
+    box, inside its footprint), in the cloud frame."""
+    side = box_surface_points(box, 1200, rng)[:600]
+    side = side[normalize(side, box)[:, 2] * box.size[0] > -box.size[2] / 2 + 0.15]
+    along = np.concatenate([rng.uniform(-0.3, 0.3, (40, 1)) + x for x in (1.4, -1.4)])
+    local = np.concatenate([along, np.full((80, 1), box.size[1] / 2 - 0.05), rng.uniform(0.01, 0.08, (80, 1))], 1)
+    cos, sin = math.cos(box.yaw), math.sin(box.yaw)
+    tyres = (local - [0, 0, box.size[2] / 2]) @ np.array([[cos, sin, 0], [-sin, cos, 0], [0, 0, 1]]) + box.center
+    return side, tyres.astype(np.float32)
+
+
+def in_band(points: np.ndarray, box: Box3D) -> np.ndarray:
+    """Bool: points in the box's lowest 0.1 m."""
+    return normalize(points, box)[:, 2] * box.size[0] < -box.size[2] / 2 + 0.1 - 1e-4
+
+
 @pytest.mark.parametrize(("include", "merge"), [(True, True), (False, True), (True, False)])
 def test_tyres_below_the_ground_cut_are_published_as_measured_points(completer: VehicleCompleter, include,
                                                                     merge) -> None:
     """A car's left side and its tyres' bottoms (in the lowest 0.1 m, which the network is not fed): with the
     measured merge the tyre points come out as they were measured (generated=0, once each); without it, not at
     all, as before."""
-    rng = np.random.default_rng(21)
     box = Box3D((10.0, 3.0, -0.9), (4.5, 1.8, 1.5), 0.3, "car", 7)
-    side = box_surface_points(box, 1200, rng)[:600]
-    side = side[normalize(side, box)[:, 2] * 4.5 > -0.75 + 0.15]     # the body, above the ground cut
-    local = np.concatenate([rng.uniform(-0.3, 0.3, (40, 1)) + x for x in (1.4, -1.4)])
-    tyres_local = np.concatenate([local, np.full((80, 1), 0.9), rng.uniform(0.01, 0.08, (80, 1))], 1)
-    cos, sin = math.cos(box.yaw), math.sin(box.yaw)
-    tyres = (tyres_local - [0, 0, 0.75]) @ np.array([[cos, sin, 0], [-sin, cos, 0], [0, 0, 1]]) + box.center
+    side, tyres = car_with_tyres(box, np.random.default_rng(21))
     engine = VehicleCompleter(completer.model, include_input_points=include, measured_merge=merge)
-    result = engine.complete_frame(np.concatenate([side, tyres]).astype(np.float32), [box])
-    low = normalize(result.points, box)[:, 2] * 4.5 < -0.75 + 0.1 - 1e-4
+    result = engine.complete_frame(np.concatenate([side, tyres]), [box])
+    low = in_band(result.points, box)
     gap = np.sqrt(((result.points[low][:, None] - tyres[None]) ** 2).sum(-1)).min(1) if low.any() else np.zeros(0)
     as_measured = low & (result.generated == 0)
     if merge:

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_pipeline import box_surface_points
+from test_pipeline import box_surface_points, car_with_tyres, in_band
 
 from gd_completion.association import AssociationSettings, BoxAssociator, track_identity
 from gd_completion.geometry import Box3D, normalize
@@ -161,6 +161,23 @@ def test_cached_completion_is_placed_by_the_moved_box(model) -> None:
     # without reuse the same frame is completed afresh
     fresh = _completer(model, track_ids="message").complete_frame(moved_points, [moved_box], stamp_ns=SECOND)
     assert fresh.stats.completions_run == 1 and fresh.stats.completions_reused == 0
+
+
+def test_a_reused_completion_keeps_its_tyres(model) -> None:
+    """The tyre points a fresh completion published as measured (the ground band, generated=0) come back with a
+    reused completion, as generated=1 (that frame's tyres, not this one's), whatever the measured points do."""
+    box = Box3D((10.0, 3.0, -0.9), (4.5, 1.8, 1.5), 0.3, "car", 7)
+    side, tyres = car_with_tyres(box, np.random.default_rng(5))
+    frame = np.concatenate([side, tyres])
+    completer = VehicleCompleter(model, reuse=ReuseSettings(max_age_s=10.0), track_ids="message")
+    first = completer.complete_frame(frame, [box], stamp_ns=SECOND)
+    second = completer.complete_frame(frame, [box], stamp_ns=SECOND + SECOND // 10)
+    assert (second.stats.completions_run, second.stats.completions_reused) == (0, 1)
+    kept = first.points[in_band(first.points, box) & (first.generated == 0)]
+    assert len(kept) >= 10
+    gap = np.sqrt(((kept[:, None] - second.points[None]) ** 2).sum(-1))
+    assert (gap.min(1) < 1e-5).all()                                   # every tyre point is published again
+    assert (second.generated[gap.argmin(1)] == 1).all()                # as a reused completion's point
 
 
 def test_new_points_rerun_the_network(model) -> None:

@@ -24,7 +24,7 @@ from gd_completion.pointcloud2 import read_xyz, write_points
 from gd_completion.progress import progress_bar
 from gd_completion.settings import CompletionSettings
 from gd_completion.stamp_sync import SyncCounters
-from gd_completion.transforms import TransformBuffer
+from gd_completion.transforms import TransformBuffer, transforms_pending
 
 
 @dataclass
@@ -156,15 +156,16 @@ def complete_bag(src: str | Path, out: str | Path, settings: CompletionSettings 
 
                 def submit(decided: list[tuple[RecordedCloud, Any]], now_ns: int | None) -> None:
                     """Submit, in order, the clouds whose boxes are known (or known to be none). A cloud with boxes
-                    that no transform received so far moves into its frame waits, and the clouds behind it, until
-                    the bag's time `now_ns` is `transform_wait` past its pairing (the node's worker waits as long
+                    whose transforms have not reached its stamp yet waits, and the clouds behind it, until they do
+                    or the bag's time `now_ns` is `transform_wait` past its pairing (the node's worker waits as long
                     for /tf); None: the bag ended, no more waiting."""
                     decided_clouds.extend((now_ns + wait_ns if now_ns is not None else 0, c, b) for c, b in decided)
                     while decided_clouds:
                         until, cloud, box_set = decided_clouds[0]
-                        boxes, missing = cloud.boxes_in_frame(box_set, transforms)
-                        if missing and now_ns is not None and now_ns < until:
+                        if (now_ns is not None and now_ns < until and transforms is not None and box_set is not None
+                                and transforms_pending(box_set, cloud.msg.header.frame_id, cloud.stamp_ns, transforms)):
                             return
+                        boxes, missing = cloud.boxes_in_frame(box_set, transforms)
                         decided_clouds.popleft()
                         if transforms is None:
                             summary.boxes_wrong_frame += missing

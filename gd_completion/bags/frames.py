@@ -38,8 +38,9 @@ def _cloud_at(reader: Any, topic: str, stamp: int) -> Any | None:
 def read_frame(bag: str | Path, frame: int = 0, *, cloud_topic: str | None = None, boxes_topic: str | None = None,
                completed_topic: str | None = None, sync_tolerance: float = SYNC_TOLERANCE_S
                ) -> tuple[str, Any, list[Box3D], Any | None]:
-    """(cloud topic, cloud message number `frame`, its boxes in its frame as the node pairs them, its completion
-    on `completed_topic` (same stamp) or None)."""
+    """(cloud topic, cloud message number `frame`, its boxes in its frame as the node pairs them (moved with the
+    transforms read up to the pairing: no `transform_wait`, so boxes whose transform was recorded later are left out),
+    its completion on `completed_topic` (same stamp) or None)."""
     with open_bag(bag) as reader:
         cloud_topic, boxes_topic, boxes_type = pick_topics(reader, cloud_topic, boxes_topic)
         completed_topic = completed_topic or default_output_topic(cloud_topic)

@@ -50,6 +50,7 @@ class FusedTrack:
     single: list[np.ndarray] = field(default_factory=list)  # normalised (M, 3), every frame
     fused: list[np.ndarray] = field(default_factory=list)   # normalised fused partial, first `max_frames` frames
     sizes: list[tuple[float, ...]] = field(default_factory=list)  # box (length, width, height) per frame
+    bands: list[np.ndarray] = field(default_factory=list)  # the frame's ground-band points (`CroppedVehicle.band`)
 
     def aggregate(self) -> np.ndarray:
         """All frames' points in the box frame (normalised): the multi-frame reference."""
@@ -267,6 +268,7 @@ def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles:
             track.frames.append(index)
             track.single.append(vehicle.normalized)
             track.sizes.append(vehicle.box.size)
+            track.bands.append(vehicle.band)
     seen = [t for t in tracks.values() if any(len(p) >= MIN_INPUT_POINTS for p in t.single)]
     chosen = {t.instance_id: t for group in (True, False)
               for t in [t for t in seen if t.stationary == group][:max_vehicles]}
@@ -316,10 +318,10 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     # (the published completion: the network's after the measured merge, as the pipeline gives it)
     fused_in = [chosen[i].fused[p] for i, p in fused_keys]
     fused = published_outputs(model, fused_in, np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(-1, 3),
-                              max_batch=max_batch)
+                              max_batch=max_batch, bands=[chosen[i].bands[p] for i, p in fused_keys])
     single_in = [chosen[i].single[p] for i, p in single_keys]
     single = published_outputs(model, single_in, np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(
-        -1, 3), max_batch=max_batch)
+        -1, 3), max_batch=max_batch, bands=[chosen[i].bands[p] for i, p in single_keys])
     fused_done, single_done = dict(zip(fused_keys, fused.published)), dict(zip(single_keys, single.published))
     fused_network, single_network = dict(zip(fused_keys, fused.completion)), dict(zip(single_keys, single.completion))
     seconds["network"] = time.perf_counter() - t2
