@@ -135,15 +135,16 @@ def test_fused_and_single_partials_are_both_scored_through_the_published_merge(s
     calls = []
     scored = fusion_eval.published_outputs
 
-    def recording(model, partials, sizes=None, max_batch=32):
-        calls.append(len(partials))
-        return scored(model, partials, sizes, max_batch=max_batch)
+    def recording(model, partials, sizes=None, max_batch=32, bands=None):
+        calls.append((len(partials), len(bands)))
+        return scored(model, partials, sizes, max_batch=max_batch, bands=bands)
 
     monkeypatch.setattr(fusion_eval, "published_outputs", recording)
     torch.manual_seed(0)
     fusion_eval.evaluate_fusion(GGDNet(TINY).eval(), root, frames=range(0, 3), max_frames=3, consistency_frames=2,
                                 max_vehicles=1, reference_points=256)
-    assert len(calls) == 2 and all(count > 0 for count in calls)   # the fused partials, then the frames alone
+    # the fused partials, then the frames alone, each with its frame's ground band (pooled as the pipeline does)
+    assert len(calls) == 2 and all(count == bands > 0 for count, bands in calls)
 
 
 def test_fusion_section_text():
