@@ -29,7 +29,7 @@ from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.kernels import fps_pruned
 from gd_completion.merge import POOL_VOXEL, merge_measured, merge_with_pool, mirrored
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
-from gd_completion.preprocess import Preprocessing
+from gd_completion.preprocess import Preprocessing, with_band
 from gd_completion.sampling import voxel_first_indices
 
 # (completion, partial, rows fed to the network, box size, ground-band points) -> output points
@@ -91,7 +91,7 @@ def main() -> None:
     completions = network_outputs(model, batch, np.array([o[1] for o in observations]))[1]
     merges: dict[str, Merge] = {
         "network alone": lambda c, p, r, s, b: c,
-        "mirror + template": lambda c, p, r, s, b: prior_outputs(np.concatenate([p, b]), s, len(c))["mirror_template"],
+        "mirror + template": lambda c, p, r, s, b: prior_outputs(with_band(p, b), s, len(c))["mirror_template"],
         "shipped": lambda c, p, r, s, b: merge_with_pool(c, p, band=b).points}
     for spec in args.variants:
         kind, *values = spec.split(":")

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gd_completion.kernels import fps_pruned
+from gd_completion.preprocess import with_band
 from gd_completion.sampling import voxel_first_indices
 
 # The measured points are pooled one per voxel of this size (normalised: 1 % of the length), bounding the merge's cost
@@ -85,9 +86,7 @@ def merge_with_pool(completion: np.ndarray, partial: np.ndarray, voxel: float = 
     its order: a track's fused partial lists the oldest frame first, so the pool changes little from frame to
     frame) and of its ground-band points `band` (`preprocess.CroppedVehicle.band`: tyres and wheel arches the
     network is not fed). `Merged.measured_row` indexes `partial` followed by `band`."""
-    measured = np.asarray(partial, np.float32).reshape(-1, 3)
-    if band is not None and len(band):
-        measured = np.concatenate([measured, np.asarray(band, np.float32).reshape(-1, 3)])
+    measured = with_band(partial, band)
     rows = voxel_first_indices(measured, voxel)
     merged = merge_measured(completion, measured[rows])
     return Merged(merged.points, np.where(merged.is_measured, rows[np.maximum(merged.measured_row, 0)], -1))

@@ -81,12 +81,20 @@ def above_ground(normalized: np.ndarray, box: Box3D, ground_clearance: float) ->
 
 
 def footprint_band(normalized: np.ndarray, box: Box3D, ground_clearance: float) -> np.ndarray:
-    """Bool (M,): normalised points of the ground band (below `ground_clearance` metres above the box floor, not
-    below the floor) inside the box's own footprint (the crop margin left out)."""
-    length, width, height = box.size
-    above_floor = normalized[:, 2] * length + height / 2
-    return ((above_floor >= 0.0) & (above_floor < ground_clearance) & (np.abs(normalized[:, 0]) <= 0.5)
-            & (np.abs(normalized[:, 1]) * length <= width / 2))
+    """Bool (M,): normalised points of the ground band (not `above_ground`, not below the box floor) inside the box's
+    own footprint (the crop margin left out)."""
+    length, width, _ = box.size
+    return (above_ground(normalized, box, 0.0) & ~above_ground(normalized, box, ground_clearance)
+            & (np.abs(normalized[:, 0]) <= 0.5) & (np.abs(normalized[:, 1]) * length <= width / 2))
+
+
+def with_band(partial: np.ndarray, band: np.ndarray | None) -> np.ndarray:
+    """(M + K, 3) float32: a vehicle's measured points, those above the ground cut first, then its ground band's
+    (`CroppedVehicle.band`; None or empty: `partial` alone)."""
+    partial = np.asarray(partial, np.float32).reshape(-1, 3)
+    if band is None or not len(band):
+        return partial
+    return np.concatenate([partial, np.asarray(band, np.float32).reshape(-1, 3)])
 
 
 def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessing
@@ -106,7 +114,7 @@ def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessin
         if int(keep.sum()) < prep.min_points:
             too_few.append(box)
         else:
-            band = normalized[~keep & footprint_band(normalized, box, prep.ground_clearance)]
+            band = normalized[footprint_band(normalized, box, prep.ground_clearance)]
             vehicles.append(CroppedVehicle(box, measured[keep], normalized[keep], band=band))
     return vehicles, too_few
 

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from gd_completion.model.network import GGDNet
-from gd_completion.preprocess import Preprocessing
+from gd_completion.preprocess import Preprocessing, with_band
 
 from .baselines import published_outputs
 from .priors import prior_outputs
@@ -394,7 +394,7 @@ def evaluate_set(classifier: PointNetClassifier, model: GGDNet, labelled: Labell
                          {n: np.zeros(0, bool) for n in INPUT_NAMES})
     nets = published_outputs(model, labelled.partials, labelled.sizes, max_batch=max_batch, bands=labelled.bands)
     measured = labelled.partials if labelled.bands is None else \
-        [np.concatenate([p, b]) for p, b in zip(labelled.partials, labelled.bands)]
+        [with_band(p, b) for p, b in zip(labelled.partials, labelled.bands)]
     clouds: dict[str, Sequence[np.ndarray] | np.ndarray] = {
         "input": measured,
         "mirror_template": [prior_outputs(p, s)["mirror_template"] for p, s in zip(measured, labelled.sizes)],

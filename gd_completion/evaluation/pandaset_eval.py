@@ -14,7 +14,7 @@ from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_senso
 from gd_completion.errors import DataFormatError
 from gd_completion.geometry import Box3D, box_problem, finite_mask, normalize
 from gd_completion.model.network import GGDNet
-from gd_completion.preprocess import CroppedVehicle, Preprocessing, above_ground, crop_vehicles
+from gd_completion.preprocess import CroppedVehicle, Preprocessing, above_ground, crop_vehicles, with_band
 
 from .baselines import BASELINE_NAMES, mirror_symmetry, published_outputs
 from .box_noise import BoxNoise, noisy_box, reframe
@@ -384,7 +384,7 @@ def _method_outputs(partial: np.ndarray, band: np.ndarray, size: Sequence[float]
     """Every method's output (`BASELINE_NAMES`) for one normalised partial, its ground-band points `band` (the
     measured points the network is not fed, pooled by the merge: the input and the box priors get them too) and its
     box `size`, given the network's generation-only, completion and merged outputs."""
-    measured = np.concatenate([partial, band]) if len(band) else partial
+    measured = with_band(partial, band)
     return {"input": measured, "mirror": mirror_symmetry(measured),
             **prior_outputs(measured, np.asarray(size), n_out),
             "generation": generation, "ggd": completion, "ggd_merge": merged}
