@@ -231,3 +231,15 @@ def test_tyres_below_the_ground_cut_are_published_as_measured_points(completer: 
         assert len(result.points[result.generated == 0]) >= len(side) * include + as_measured.sum()
     else:
         assert not as_measured.any()
+
+
+def test_ground_bands_must_match_the_partials(completer: VehicleCompleter) -> None:
+    """A list of ground bands that does not match the partial clouds is refused with one clear error, not zipped
+    short (a vehicle silently completed without its band, or dropped)."""
+    from gd_completion.evaluation.baselines import published_outputs
+
+    partial = np.random.default_rng(0).random((300, 3)).astype(np.float32) - 0.5
+    with pytest.raises(ValueError, match="1 partial clouds but 0 ground bands"):
+        completer.complete_normalized([partial], [(4.5, 1.8, 1.5)], bands=[])
+    with pytest.raises(ValueError, match="1 partial clouds but 2 ground bands"):
+        published_outputs(completer.model, [partial], [(4.5, 1.8, 1.5)], bands=[partial[:3], partial[:3]])
