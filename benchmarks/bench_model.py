@@ -33,6 +33,7 @@ from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import box_shape
 from gd_completion.model.ops import farthest_point_sample, gather_points, knn_graph, torch_kernels
 from gd_completion.pipeline import VehicleCompleter, default_threads
+from gd_completion.spacing import even_spacing
 
 PATHS = {"torch": torch_kernels, "fast": nullcontext}
 
@@ -144,7 +145,8 @@ def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) ->
         knn = knn_graph(pg, cfg.knn_k, margin)
         idx = model.local.group(pg, x, order)
         feat = torch.cat([model.local(pg, x, order), pg, torch.zeros(1, pg.shape[1], 2)], -1)
-        completion = model(x, shape).completion[0].numpy()
+        out = model(x, shape)
+        completion, graph = out.completion[0].numpy(), out.neighbours[0].numpy()
         parts = {
             "fps": lambda: farthest_point_sample(x, order.shape[1]),
             "encoder": lambda: model.encoder(x, order, shape),
@@ -154,6 +156,7 @@ def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) ->
             "local MLP": lambda: torch.cat([model.local._features(pg[:, s:s + 1024], x, idx[:, s:s + 1024])
                                             for s in range(0, pg.shape[1], 1024)], 1),
             "G-ResNet": lambda: model.deform(feat, code, knn),
+            "even spacing": lambda: even_spacing(completion, graph=graph),
             "merge": lambda: merge_with_pool(completion, x[0].numpy()),
         }
         if model.refiner is not None:   # its PointNet, the input into its frame and P_g, P_o back (GGDNet.forward)

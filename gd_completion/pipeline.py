@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from gd_completion import spacing
 from gd_completion.association import TRACK_ID_MODES, AssociationSettings, BoxAssociator, track_identity
 from gd_completion.class_maps import UNMAPPED
 from gd_completion.errors import DeviceError
@@ -135,6 +136,7 @@ class VehicleCompleter:
         fusion: TrackFusion | None = None,
         publish_fused_points: bool = False,
         measured_merge: bool = True,
+        even_spacing: bool = True,
         track_ids: str = "message",
         association: AssociationSettings | None = None,
         reuse: ReuseSettings | None = None,
@@ -148,6 +150,7 @@ class VehicleCompleter:
         self.fusion = fusion
         self.publish_fused_points = bool(publish_fused_points)
         self.measured_merge = bool(measured_merge)
+        self.even_spacing = bool(even_spacing)
         if track_ids not in TRACK_ID_MODES:
             raise ValueError(f"track_ids={track_ids!r} must be one of {TRACK_ID_MODES}")
         self.track_ids = track_ids
@@ -190,7 +193,7 @@ class VehicleCompleter:
             min_points=settings.min_points or None,
             crop_margin=settings.crop_margin if settings.crop_margin >= 0 else None, limits=settings.limits,
             labels=settings.labels, include_input_points=settings.include_input_points,
-            measured_merge=settings.measured_merge, track_ids=settings.track_ids,
+            measured_merge=settings.measured_merge, even_spacing=settings.even_spacing, track_ids=settings.track_ids,
             association=settings.association, reuse=settings.reuse,
             fusion=TrackFusion(settings.fusion) if settings.track_fusion else None,
             publish_fused_points=settings.publish_fused_points)
@@ -286,7 +289,8 @@ class VehicleCompleter:
     def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, merge: bool,
                       band: np.ndarray | None = None) -> VehicleResult:
         """Resample one vehicle to the network's input size (`preprocess.network_input`) and complete it (one
-        task of the thread pool): (num_output, 3) float32 points in the normalised frame and, per point, the
+        task of the thread pool): (num_output, 3) float32 points in the normalised frame (with `even_spacing`, the
+        network's points evenly spaced: `spacing.even_spacing`) and, per point, the
         row of `partial` it copies (-1: generated); with `merge`, merged with a pool of all its measured points
         (`merge.merge_with_pool`; a single frame's crop or a track's fused partial alike, and the ground-band points
         `band`, whose rows follow the partial's), else all generated; and the refined box's frame vector (None
@@ -297,7 +301,10 @@ class VehicleCompleter:
         with torch.inference_mode():   # thread-local: set in the thread that runs the model
             out = self.model(torch.from_numpy(partial[rows]).unsqueeze(0).to(self.device), shape)
             completion = out.completion[0].float().cpu().numpy()
+            graph = out.neighbours[0].cpu().numpy() if self.even_spacing else None
             frame = out.box_frame[0].double().cpu().numpy() if out.box_frame is not None else None
+        if graph is not None:
+            completion = spacing.even_spacing(completion, graph=graph)
         if not merge:
             return completion, np.full(len(completion), -1, np.int64), frame
         merged = merge_with_pool(completion, partial, band=band)

@@ -95,6 +95,10 @@ SETTINGS: dict[str, Setting] = {
                                     "per 1 % voxel; a track's: its fused partial) and their mirror image, measured "
                                     "points first (they replace network points wherever the vehicle was seen).",
                               live=True),
+    "even_spacing": Setting(True, "Move the network's points along their own surface until their spacing is even "
+                                  "(5 pushes away from the nearest points within the local plane, then 30 % of the "
+                                  "way onto it), before the merge; false publishes the network's points as they come.",
+                            live=True),
     # per-frame work limits (gd_completion.limits.FrameLimits); every skip is a counter in /diagnostics
     "max_boxes": Setting(_LIMITS.max_boxes, "Boxes completed per frame at most, nearest first; the rest are skipped "
                                             "(too_many_boxes).", 1, 100_000, live=True),
@@ -186,6 +190,7 @@ class CompletionSettings:
     transform_wait: float
     include_input_points: bool
     measured_merge: bool
+    even_spacing: bool
     limits: FrameLimits
     track_fusion: bool
     publish_fused_points: bool
@@ -232,7 +237,8 @@ class CompletionSettings:
                    sync_tolerance=float(v["sync_tolerance"]), use_tf=bool(v["use_tf"]),
                    transform_tolerance=float(v["transform_tolerance"]), transform_wait=float(v["transform_wait"]),
                    include_input_points=bool(v["include_input_points"]),
-                   measured_merge=bool(v["measured_merge"]), limits=limits, track_fusion=bool(v["track_fusion"]),
+                   measured_merge=bool(v["measured_merge"]), even_spacing=bool(v["even_spacing"]),
+                   limits=limits, track_fusion=bool(v["track_fusion"]),
                    publish_fused_points=bool(v["publish_fused_points"]), fusion=fusion, track_ids=str(v["track_ids"]),
                    association=AssociationSettings(max_distance=float(v["association_max_distance"])), reuse=reuse)
 

@@ -33,7 +33,7 @@ def file_sha256(path: str | Path) -> str:
 def completer_parameters(completer: Any) -> dict[str, Any]:
     """The settings of a VehicleCompleter that decide its output (not its thread count: that does not)."""
     return {"labels": sorted(completer.labels), "include_input_points": completer.include_input_points,
-            "measured_merge": completer.measured_merge,
+            "measured_merge": completer.measured_merge, "even_spacing": completer.even_spacing,
             "num_input_points": completer.num_input, "num_output_points": completer.num_output,
             "device": str(completer.device), "preprocessing": completer.preprocessing.to_dict()}
 

@@ -10,17 +10,20 @@ import torch
 from gd_completion.merge import merge_with_pool, mirrored
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.sampling import resample_indices
+from gd_completion.spacing import even_spacing
 
 # Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s); "box_fill",
-# "template" and "mirror_template" are the box-only priors of `priors` (no learning); "ggd" is the network's
-# P_o, "ggd_merge" what the pipeline publishes: P_o after the measured merge (`merge`).
+# "template" and "mirror_template" are the box-only priors of `priors` (no learning); "ggd_raw" is the network's
+# P_o as it comes out, "ggd" P_o evenly spaced (`spacing`; the pipeline's output without the merge), "ggd_merge"
+# what the pipeline publishes: the evenly spaced P_o after the measured merge (`merge`).
 BASELINE_NAMES: tuple[str, ...] = ("input", "mirror", "box_fill", "template", "mirror_template", "generation",
-                                   "ggd", "ggd_merge")
+                                   "ggd_raw", "ggd", "ggd_merge")
 BASELINE_TITLES: dict[str, str] = {"input": "raw input", "mirror": "mirror symmetry",
                                    "box_fill": "box fill (uniform in the box, no input)",
                                    "template": "template (sedan fitted to the box, no input)",
                                    "mirror_template": "mirror + template, FPS to 2048",
-                                   "generation": "generation only", "ggd": "GGD-Net (network output)",
+                                   "generation": "generation only", "ggd_raw": "GGD-Net, raw P_o (before even spacing)",
+                                   "ggd": "GGD-Net (network output, evenly spaced)",
                                    "ggd_merge": "GGD-Net + measured merge (published)"}
 
 
@@ -87,7 +90,6 @@ def ggd_net(model: GGDNet, partial: np.ndarray | Sequence[np.ndarray],
     return out[0] if single else out
 
 
-@torch.inference_mode()
 def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
                     sizes: np.ndarray | Sequence[Sequence[float]] | None = None,
                     max_batch: int = 32) -> tuple[np.ndarray, np.ndarray]:
@@ -97,22 +99,32 @@ def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
     (length, width, height), needed by a box-conditioned model. In eval mode P_g of the forward pass
     equals `generate` (FPS is deterministic), so one pass serves both baselines.
     """
+    generated, completion, _ = _forward(model, partials, sizes, max_batch)
+    return generated, completion
+
+
+@torch.inference_mode()
+def _forward(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
+             sizes: np.ndarray | Sequence[Sequence[float]] | None, max_batch: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`network_outputs` and the network's kNN graph over P_g (B, N_o, k) int64."""
     model = model.eval()
     if isinstance(partials, np.ndarray) and partials.ndim == 3 and partials.shape[1] == model.config.num_input:
         batch = partials.astype(np.float32, copy=False)
     else:
         batch = _resampled(list(partials), model.config.num_input)[0]
     shapes = _shapes(sizes, len(batch))
-    generated, completion = [], []
+    generated, completion, graph = [], [], []
     for start in range(0, len(batch), max_batch):
         out = model(torch.from_numpy(np.ascontiguousarray(batch[start:start + max_batch])),
                     shapes[start:start + max_batch] if shapes is not None else None)
         generated.append(out.generated.float().numpy())
         completion.append(out.completion.float().numpy())
+        graph.append(out.neighbours.numpy())
     if not generated:
         empty = np.zeros((0, model.config.num_output, 3), np.float32)
-        return empty, empty.copy()
-    return np.concatenate(generated), np.concatenate(completion)
+        return empty, empty.copy(), np.zeros((0, model.config.num_output, model.config.knn_k), np.int64)
+    return np.concatenate(generated), np.concatenate(completion), np.concatenate(graph)
 
 
 @dataclass(frozen=True)
@@ -120,21 +132,24 @@ class NetworkOutputs:
     """The network methods' outputs for a batch of partial clouds, each (B, N_o, 3) float32."""
 
     generated: np.ndarray   # generation-only branch P_g
-    completion: np.ndarray  # GGD-Net P_o
-    published: np.ndarray   # P_o after the measured merge, as the pipeline publishes it
+    raw: np.ndarray         # GGD-Net P_o as the network gives it
+    completion: np.ndarray  # P_o evenly spaced (`spacing.even_spacing`), as the pipeline's output without the merge
+    published: np.ndarray   # the evenly spaced P_o after the measured merge, as the pipeline publishes it
 
 
 def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
                       sizes: np.ndarray | Sequence[Sequence[float]] | None = None, max_batch: int = 32,
                       bands: Sequence[np.ndarray] | None = None) -> NetworkOutputs:
-    """`network_outputs` of partial clouds of any size and their completions after the measured merge with a pool
-    of all their measured points (`merge.merge_with_pool`), as the pipeline does for single frames and tracks'
-    fused partials alike; `bands`: each cloud's ground-band points (`preprocess.CroppedVehicle.band`), pooled too."""
+    """`network_outputs` of partial clouds of any size, their completions evenly spaced (`spacing.even_spacing`) and
+    then merged with a pool of all their measured points (`merge.merge_with_pool`), as the pipeline does for single
+    frames and tracks' fused partials alike; `bands`: each cloud's ground-band points
+    (`preprocess.CroppedVehicle.band`), pooled too."""
     partials = [np.asarray(p, np.float32).reshape(-1, 3) for p in partials]
     if bands is not None and len(bands) != len(partials):
         raise ValueError(f"{len(partials)} partial clouds but {len(bands)} ground bands")
     batch = _resampled(partials, model.config.num_input)[0]
-    generated, completion = network_outputs(model, batch, sizes, max_batch=max_batch)
+    generated, raw, graph = _forward(model, batch, sizes, max_batch)
+    completion = even_spacing(raw, graph=graph)
     merged = [merge_with_pool(c, p, band=None if bands is None else bands[i]).points
               for i, (p, c) in enumerate(zip(partials, completion))]
-    return NetworkOutputs(generated, completion, np.stack(merged) if merged else completion.copy())
+    return NetworkOutputs(generated, raw, completion, np.stack(merged) if merged else completion.copy())

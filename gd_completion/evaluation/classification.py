@@ -57,7 +57,8 @@ PANDASET_CLASSES: dict[str, tuple[str, ...]] = {
 #: the pipeline publishes (P_o after the measured merge) and the upper bound (complete shape or aggregate).
 INPUT_NAMES: tuple[str, ...] = ("input", "mirror_template", "ggd", "ggd_merge", "complete")
 INPUT_TITLES: dict[str, str] = {"input": "raw partial input", "mirror_template": "mirror + template prior",
-                                "ggd": "GGD-Net (network output)", "ggd_merge": "GGD-Net published (measured merge)",
+                                "ggd": "GGD-Net (network output, evenly spaced)",
+                                "ggd_merge": "GGD-Net published (measured merge)",
                                 "complete": "complete shape (PandaSet: multi-frame aggregate)"}
 #: Seed of the classifier's training shapes (below evaluation.synthetic.EVAL_SEED: never an evaluation seed).
 TRAIN_SEED = 4_242_000

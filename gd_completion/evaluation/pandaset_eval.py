@@ -328,7 +328,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     noisy = published_outputs(model, [v.normalized for v in noisy_in],
                               np.array([v.box.size for v in noisy_in], np.float64).reshape(-1, 3), max_batch=max_batch,
                               bands=[v.band for v in noisy_in])
-    noisy_nets = {i: (noisy.generated[j], noisy.completion[j], noisy.published[j]) for j, i in enumerate(noisy_meta)}
+    noisy_nets = {i: (noisy.generated[j], noisy.raw[j], noisy.completion[j], noisy.published[j])
+                  for j, i in enumerate(noisy_meta)}
     seconds["network"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()
@@ -337,8 +338,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     for i, (track, k) in enumerate(meta):
         partial, box = track.points[k], track.boxes[k]
         ref_random, ref_voxel, images = refs[track.uuid]
-        outputs = _method_outputs(partial, track.bands[k], box.size, n_out, clean.generated[i], clean.completion[i],
-                                   clean.published[i])
+        outputs = _method_outputs(partial, track.bands[k], box.size, n_out, clean.generated[i], clean.raw[i],
+                                   clean.completion[i], clean.published[i])
         item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], len(partial),
                             size_bin(len(partial)), {}, {})
         low = in_ground_band(band_refs[track.uuid], box, prep.ground_clearance)   # the same for every method
@@ -380,14 +381,14 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
 
 
 def _method_outputs(partial: np.ndarray, band: np.ndarray, size: Sequence[float], n_out: int, generation: np.ndarray,
-                    completion: np.ndarray, merged: np.ndarray) -> dict[str, np.ndarray]:
+                    raw: np.ndarray, completion: np.ndarray, merged: np.ndarray) -> dict[str, np.ndarray]:
     """Every method's output (`BASELINE_NAMES`) for one normalised partial, its ground-band points `band` (the
     measured points the network is not fed, pooled by the merge: the input and the box priors get them too) and its
-    box `size`, given the network's generation-only, completion and merged outputs."""
+    box `size`, given the network's generation-only, raw, evenly spaced and merged outputs."""
     measured = with_band(partial, band)
     return {"input": measured, "mirror": mirror_symmetry(measured),
             **prior_outputs(measured, np.asarray(size), n_out),
-            "generation": generation, "ggd": completion, "ggd_merge": merged}
+            "generation": generation, "ggd_raw": raw, "ggd": completion, "ggd_merge": merged}
 
 
 def _render_item(item: PandaSetItem, partial: np.ndarray, completion: np.ndarray, reference: np.ndarray,

@@ -193,7 +193,8 @@ def evaluate_synthetic(model: GGDNet, partial: np.ndarray, complete: np.ndarray,
     outputs = {"input": partial, "mirror": mirror, "box_fill": box_fill(sizes, n_out), "template": template,
                "mirror_template": np.stack([thinned_union([m, t], n_out) for m, t in zip(mirror, template)])
                if len(partial) else np.zeros((0, n_out, 3), np.float32),
-               "generation": networks.generated, "ggd": completion, "ggd_merge": networks.published}
+               "generation": networks.generated, "ggd_raw": networks.raw, "ggd": completion,
+               "ggd_merge": networks.published}
     result: dict[str, dict[str, float]] = {}
     observed = observed_mask(complete, partial)
     observed_fraction = float("nan")
