@@ -33,7 +33,6 @@ from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import box_shape
 from gd_completion.model.ops import farthest_point_sample, gather_points, knn_graph, torch_kernels
 from gd_completion.pipeline import VehicleCompleter, default_threads
-from gd_completion.spacing import even_spacing
 
 PATHS = {"torch": torch_kernels, "fast": nullcontext}
 
@@ -133,6 +132,7 @@ def cuda_rows(model: GGDNet, frame: torch.Tensor, shapes: torch.Tensor, device: 
 
 def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) -> None:
     """Per-stage latency of the fast path, ms per vehicle at batch 1, one thread."""
+    from gd_completion.spacing import even_spacing   # here: the A/B runs this script with older code too
     cfg = model.config
     shape = shape if cfg.box_conditioning else None
     with torch.inference_mode():

@@ -239,6 +239,7 @@ def _spread_cloud(points: np.ndarray, nbr: np.ndarray, iterations: int, neighbou
     h = _spacing(cur, nbr)
     nxt = cur.copy()
     if h > 0.0:
+        inv_h2 = 1.0 / (h * h)
         for _ in range(iterations):
             for i in range(n):
                 fx = fy = fz = 0.0
@@ -247,9 +248,10 @@ def _spread_cloud(points: np.ndarray, nbr: np.ndarray, iterations: int, neighbou
                 for s in range(neighbours):
                     j = nbr[i, s]
                     dx, dy, dz = cur[i, 0] - cur[j, 0], cur[i, 1] - cur[j, 1], cur[i, 2] - cur[j, 2]
-                    d = math.sqrt(dx * dx + dy * dy + dz * dz)
-                    if d > 0.0:
-                        dx, dy, dz = dx / d, dy / d, dz / d
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 > 0.0:
+                        inv = 1.0 / math.sqrt(d2)
+                        dx, dy, dz = dx * inv, dy * inv, dz * inv
                     else:   # a repeated point: the pair separates along a fixed tangent, in opposite directions
                         tx, ty, tz = (0.0, nz, -ny) if abs(nx) < 0.9 else (-nz, 0.0, nx)
                         size = math.sqrt(tx * tx + ty * ty + tz * tz)
@@ -258,7 +260,7 @@ def _spread_cloud(points: np.ndarray, nbr: np.ndarray, iterations: int, neighbou
                             dx, dy, dz = sign * tx / size, sign * ty / size, sign * tz / size
                         else:
                             dx, dy, dz = sign, 0.0, 0.0
-                    w = math.exp(-(d / h) ** 2)
+                    w = math.exp(-d2 * inv_h2)
                     fx += w * dx
                     fy += w * dy
                     fz += w * dz
