@@ -132,7 +132,7 @@ def cuda_rows(model: GGDNet, frame: torch.Tensor, shapes: torch.Tensor, device: 
 
 def stages(model: GGDNet, x: torch.Tensor, shape: torch.Tensor, repeats: int) -> None:
     """Per-stage latency of the fast path, ms per vehicle at batch 1, one thread."""
-    from gd_completion.spacing import even_spacing   # here: the A/B runs this script with older code too
+    from gd_completion.spacing import even_spacing  # here: the A/B runs this script with older code too
     cfg = model.config
     shape = shape if cfg.box_conditioning else None
     with torch.inference_mode():

@@ -99,15 +99,15 @@ def network_outputs(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
     (length, width, height), needed by a box-conditioned model. In eval mode P_g of the forward pass
     equals `generate` (FPS is deterministic), so one pass serves both baselines.
     """
-    generated, completion, _ = _forward(model, partials, sizes, max_batch)
+    generated, completion, _ = network_forward(model, partials, sizes, max_batch)
     return generated, completion
 
 
 @torch.inference_mode()
-def _forward(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
-             sizes: np.ndarray | Sequence[Sequence[float]] | None, max_batch: int
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`network_outputs` and the network's kNN graph over P_g (B, N_o, k) int64."""
+def network_forward(model: GGDNet, partials: np.ndarray | Sequence[np.ndarray],
+                    sizes: np.ndarray | Sequence[Sequence[float]] | None = None, max_batch: int = 32
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`network_outputs` and the network's kNN graph over P_g (B, N_o, k) int64, which `spacing.even_spacing` uses."""
     model = model.eval()
     if isinstance(partials, np.ndarray) and partials.ndim == 3 and partials.shape[1] == model.config.num_input:
         batch = partials.astype(np.float32, copy=False)
@@ -148,7 +148,7 @@ def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
     if bands is not None and len(bands) != len(partials):
         raise ValueError(f"{len(partials)} partial clouds but {len(bands)} ground bands")
     batch = _resampled(partials, model.config.num_input)[0]
-    generated, raw, graph = _forward(model, batch, sizes, max_batch)
+    generated, raw, graph = network_forward(model, batch, sizes, max_batch)
     completion = even_spacing(raw, graph=graph)
     merged = [merge_with_pool(c, p, band=None if bands is None else bands[i]).points
               for i, (p, c) in enumerate(zip(partials, completion))]

@@ -1,0 +1,110 @@
+"""Even-spacing variants (`spacing.even_spacing`) measured on both evaluation sets in one run, each followed by the
+shipped merge (`merge.merge_with_pool`, the ground band pooled on PandaSet):
+
+- PandaSet-002's reduced protocol (at most 8 observations per vehicle, both sensors, exact boxes; as
+  `benchmarks/merge_variants.py`): coverage error x1e3 of the network's points (spaced, before the merge) and of
+  the published output, overall and per input-size bucket, and the published output's fidelity x1e3;
+- the held-out meshes (`evaluation.synthetic.load_heldout_meshes`, as `gd-completion evaluate`): the published
+  output's CD, CD(D,G) x1e4, F-score@1 % and share of points within 2 % of the length of the true mesh surface.
+
+    python benchmarks/spacing_variants.py [--model PT] [--pandaset DIR] [--meshes DIR] [--heldout N]
+                                          [--variants SPEC ...]
+
+A SPEC is `ITERATIONS:STEP:FLATTEN` (`spacing.SpacingSettings` with 8 neighbours), `none` (the raw P_o) or
+`exact:ITERATIONS:STEP:FLATTEN` (the planes' 16 nearest searched among all points instead of the network's graph
+and two hops). The shipped settings are `5:0.3:0.3`. Also printed: the mirror + template prior, given the band."""
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from gd_completion.datasets.pandaset import PandaSetSequence
+from gd_completion.evaluation import pandaset_eval as pe
+from gd_completion.evaluation.baselines import network_forward
+from gd_completion.evaluation.mesh_distance import distances_to_meshes, surface_shares
+from gd_completion.evaluation.nearest import nearest_sq
+from gd_completion.evaluation.priors import prior_outputs
+from gd_completion.evaluation.synthetic import _chamfer_row, load_heldout_meshes
+from gd_completion.merge import merge_with_pool
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.preprocess import Preprocessing, with_band
+from gd_completion.spacing import SpacingSettings, even_spacing
+
+
+def spaced(spec: str, raw: np.ndarray, graph: np.ndarray) -> tuple[np.ndarray, float]:
+    """The variant's points (B, N_o, 3) and its ms per vehicle."""
+    start = time.perf_counter()
+    if spec == "none":
+        out = raw.copy()
+    else:
+        exact = spec.startswith("exact:")
+        iterations, step, flatten = spec.removeprefix("exact:").split(":")
+        settings = SpacingSettings(iterations=int(iterations), step=float(step), flatten=float(flatten))
+        out = even_spacing(raw, settings, graph=None if exact else graph)
+    return out, 1e3 * (time.perf_counter() - start) / max(len(raw), 1)
+
+
+def pandaset_observations(root: str) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """(partial, box size, reference, ground band) of the reduced protocol's observations."""
+    sequence = PandaSetSequence(root)
+    tracks = pe.collect_tracks(sequence, pe.stationary_vehicles(sequence, pe.SENSORS),
+                               replace(Preprocessing(), min_points=1), sensors=pe.SENSORS)
+    observations = []
+    for track in tracks.values():
+        picks = track.input_frames(pe.MIN_INPUT_POINTS, 8)
+        if picks and len(set(track.frames)) > 1:
+            reference = pe.random_reference(track.aggregate(), pe.RANDOM_REFERENCE_POINTS, seed=track.instance_id)
+            observations += [(track.points[k], np.array(track.boxes[k].size), reference, track.bands[k])
+                             for k in picks]
+    return observations
+
+
+def by_bucket(values: list[float], where: np.ndarray, bins: list[str]) -> str:
+    v = np.array(values)
+    return f"{v.mean():.3f} " + " ".join(f"{v[where == b].mean():.3f}" for b in bins)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", default=str(DEFAULT_WEIGHTS))
+    parser.add_argument("--pandaset", default="../shared/data/pandaset-002")
+    parser.add_argument("--meshes", default="../shared/data/vehicle-meshes")
+    parser.add_argument("--heldout", type=int, default=128, help="held-out mesh pairs (as the evaluation)")
+    parser.add_argument("--variants", nargs="*", default=["none", "5:0.3:0", "0:0.3:0.3", "5:0.3:0.3", "8:0.3:0.3",
+                                                          "5:0.3:0.45", "exact:5:0.3:0.3"])
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    model = load_model(args.model)
+    observations = pandaset_observations(args.pandaset)
+    _, raw, graph = network_forward(model, [o[0] for o in observations], np.array([o[1] for o in observations]))
+    bins = [name for name, *_ in pe.SIZE_BINS]
+    where = np.array([pe.size_bin(len(o[0])) for o in observations])
+    heldout = load_heldout_meshes(args.heldout, args.meshes)
+    _, h_raw, h_graph = network_forward(model, list(heldout.partial), heldout.sizes)
+    print(f"PandaSet: {len(observations)} observations; coverage x1e3 all / {' / '.join(bins)} of the network's "
+          "points, then of the published output | its fidelity x1e3 | ms per vehicle || held-out meshes "
+          f"({len(heldout.partial)} pairs), published: CD, CD(D,G) x1e4, F-score@1 %, on the surface")
+    prior = [prior_outputs(with_band(p, b), s, raw.shape[1])["mirror_template"] for p, s, _, b in observations]
+    prior_coverage = [nearest_sq(o[2], q).mean() * 1e3 for o, q in zip(observations, prior)]
+    print(f"{'mirror + template':18s} {by_bucket(prior_coverage, where, bins)}")
+    for spec in args.variants:
+        points, ms = spaced(spec, raw, graph)
+        merged = [merge_with_pool(c, p, band=b).points for c, (p, _, _, b) in zip(points, observations)]
+        network = [nearest_sq(o[2], c).mean() * 1e3 for o, c in zip(observations, points)]
+        published = [nearest_sq(o[2], m).mean() * 1e3 for o, m in zip(observations, merged)]
+        fidelity = [nearest_sq(o[0], m).mean() * 1e3 for o, m in zip(observations, merged)]
+        h_points = spaced(spec, h_raw, h_graph)[0]
+        h_out = np.stack([merge_with_pool(c, p).points for c, p in zip(h_points, heldout.partial)])
+        row = _chamfer_row(h_out, heldout.complete)[0]
+        (distance,) = distances_to_meshes([h_out], [v for v, _ in heldout.meshes], [f for _, f in heldout.meshes])
+        print(f"{spec:18s} {by_bucket(network, where, bins)} | {by_bucket(published, where, bins)} | "
+              f"{by_bucket(fidelity, where, bins)} | {ms:.2f} || {row['cd']:.2f} {row['cd_dg']:.2f} "
+              f"{row['f_score']:.3f} {surface_shares(distance)[0]:.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
