@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
@@ -243,3 +244,29 @@ def test_ground_bands_must_match_the_partials(completer: VehicleCompleter) -> No
         completer.complete_normalized([partial], [(4.5, 1.8, 1.5)], bands=[])
     with pytest.raises(ValueError, match="1 partial clouds but 2 ground bands"):
         published_outputs(completer.model, [partial], [(4.5, 1.8, 1.5)], bands=[partial[:3], partial[:3]])
+
+
+def test_even_spacing_is_the_same_in_the_pipeline_and_the_evaluation() -> None:
+    from gd_completion.evaluation.baselines import network_forward, published_outputs
+    from gd_completion.spacing import even_spacing
+
+    model = load_model(DEFAULT_WEIGHTS)
+    rng = np.random.default_rng(3)
+    boxes = [Box3D((0.0, 0.0, 0.0), (4.5, 1.8, 1.5), 0.0, "car", 1), Box3D((0.0, 0.0, 0.0), (6.0, 2.2, 2.6), 0.0,
+                                                                          "truck", 2)]
+    partials = [normalize(box_surface_points(b, n, rng), b).astype(np.float32) for b, n in zip(boxes, (700, 300))]
+    sizes = [b.size for b in boxes]
+    _, raw, graph = network_forward(model, partials, np.array(sizes))
+    spaced = even_spacing(raw, graph=graph)
+    unmerged = VehicleCompleter(model, measured_merge=False)
+    np.testing.assert_array_equal(unmerged.complete_normalized(partials, sizes), spaced)
+    unmerged.even_spacing = False   # the node's live parameter
+    np.testing.assert_array_equal(unmerged.complete_normalized(partials, sizes), raw)
+    evaluated = published_outputs(model, partials, np.array(sizes))
+    np.testing.assert_array_equal(evaluated.raw, raw)
+    np.testing.assert_array_equal(evaluated.completion, spaced)
+    merged = VehicleCompleter(model).complete_normalized(partials, sizes)
+    np.testing.assert_array_equal(merged, evaluated.published)
+    # spacing moves the network's points: their nearest-neighbour spacing is more even than the raw P_o's
+    variation = [(lambda d: d.std() / d.mean())(cKDTree(c).query(c, 2)[0][:, 1]) for c in (raw[0], spaced[0])]
+    assert variation[1] < 0.9 * variation[0], variation
