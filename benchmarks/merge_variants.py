@@ -2,7 +2,10 @@
 exact boxes): coverage error and fidelity x1e3, overall and per input-size bucket, of the network's completions
 merged in several ways, beside the network alone and the mirror + template prior.
 
-    python benchmarks/merge_variants.py [--model PT] [--pandaset DIR] [--variants SPEC ...]
+    python benchmarks/merge_variants.py [--model PT] [--pandaset DIR] [--raw] [--variants SPEC ...]
+
+The completions are the network's points evenly spaced (`spacing.even_spacing`), as the pipeline merges them;
+`--raw` merges the network's points as they come (how the merge's table in docs/MODEL.md was made).
 
 A SPEC is `pool:VOXEL:NETWORK_WEIGHT:MIRROR_WEIGHT` (one measured point per VOXEL voxel, 0: all of them; the
 weights of the weighted FPS, `kernels.fps_pruned`), `fed` (the 512 points fed to the network, unweighted: the
@@ -23,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from gd_completion.datasets.pandaset import PandaSetSequence
 from gd_completion.evaluation import pandaset_eval as pe
-from gd_completion.evaluation.baselines import _resampled, network_outputs
+from gd_completion.evaluation.baselines import _resampled, network_forward
 from gd_completion.evaluation.nearest import nearest_sq
 from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.kernels import fps_pruned
@@ -31,6 +34,7 @@ from gd_completion.merge import POOL_VOXEL, merge_measured, merge_with_pool, mir
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.preprocess import Preprocessing, with_band
 from gd_completion.sampling import voxel_first_indices
+from gd_completion.spacing import even_spacing
 
 # (completion, partial, rows fed to the network, box size, ground-band points) -> output points
 Merge = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
@@ -72,6 +76,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default=str(DEFAULT_WEIGHTS))
     parser.add_argument("--pandaset", default="../shared/data/pandaset-002")
+    parser.add_argument("--raw", action="store_true",
+                        help="merge the network's raw points (as before even spacing; the MODEL.md merge table)")
     parser.add_argument("--variants", nargs="*", default=["fed", "pool:0.02:1:1", "pool:0:0.5:1", "pool:0:0.1:1",
                                                           "pool:0.01:0.25:0.5", "pool:0.01:0.3:0.6"])
     args = parser.parse_args()
@@ -88,7 +94,9 @@ def main() -> None:
             observations += [(track.points[k], np.array(track.boxes[k].size), reference, track.bands[k])
                              for k in picks]
     batch, rows = _resampled([o[0] for o in observations], model.config.num_input)
-    completions = network_outputs(model, batch, np.array([o[1] for o in observations]))[1]
+    _, completions, graph = network_forward(model, batch, np.array([o[1] for o in observations]))
+    if not args.raw:   # as the pipeline: the network's points evenly spaced before any merge
+        completions = even_spacing(completions, graph=graph)
     merges: dict[str, Merge] = {
         "network alone": lambda c, p, r, s, b: c,
         "mirror + template": lambda c, p, r, s, b: prior_outputs(with_band(p, b), s, len(c))["mirror_template"],

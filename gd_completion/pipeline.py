@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from gd_completion import spacing
 from gd_completion.association import TRACK_ID_MODES, AssociationSettings, BoxAssociator, track_identity
 from gd_completion.class_maps import UNMAPPED
 from gd_completion.errors import DeviceError
@@ -32,6 +31,7 @@ from gd_completion.registration import align_planar
 from gd_completion.reuse import DUE_UNCACHED, CachedCompletion, CompletionCache, Decision, ReuseSettings
 from gd_completion.sampling import resample_indices
 from gd_completion.settings import CompletionSettings
+from gd_completion.spacing import even_spacing
 
 __all__ = ["COMPLETION_DTYPE", "DEFAULT_LABELS", "LABEL_IDS", "FrameCompletion", "FrameStats", "VehicleCompleter",
            "check_device", "completion_to_structured", "default_threads"]
@@ -212,7 +212,8 @@ class VehicleCompleter:
         seconds before that) so that the first real frame is not the slow one."""
         rng = np.random.default_rng(0)
         cloud = (rng.random((self.num_input + 1, 3)) - 0.5) * np.array([1.0, 0.4, 0.35])
-        self.complete_normalized([cloud.astype(np.float32)], [(4.5, 1.8, 1.6)])
+        # merge and spacing on whatever the settings say: either may be turned on live
+        self._complete_all([cloud.astype(np.float32)], [(4.5, 1.8, 1.6)], True, math.inf, None, spacing=True)
         align_planar(cloud + np.array([0.01, 0.0, 0.0]), cloud)   # track fusion's ICP kernel (fusion may be turned on)
 
     def close(self) -> None:
@@ -258,13 +259,16 @@ class VehicleCompleter:
         `merge.merge_with_pool`)."""
         if not len(partials):
             return np.zeros((0, self.num_output, 3), np.float32)
-        done = self._complete_all(partials, sizes, self.measured_merge, math.inf, None, bands=bands)
+        done = self._complete_all(partials, sizes, self.measured_merge, math.inf, None, bands=bands,
+                                  spacing=self.even_spacing)
         return np.stack([result[0] for result in done if result is not None])   # no deadline: all are done
 
     def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None, merge: bool,
                       deadline: float, cancel: threading.Event | None, finish_by: bool = False,
-                      bands: Sequence[np.ndarray] | None = None) -> list[VehicleResult | None]:
-        """Each vehicle's (completion, measured rows) in order (`_complete_one`); None for those not started before
+                      bands: Sequence[np.ndarray] | None = None, spacing: bool = True
+                      ) -> list[VehicleResult | None]:
+        """Each vehicle's (completion, measured rows) in order (`_complete_one`, with `merge` and `spacing` read
+        once for all of them); None for those not started before
         `deadline` (time.monotonic) or after `cancel` was set. `finish_by`: a vehicle after the first starts only
         when it is expected to finish by `deadline` (the recent mean time of one vehicle)."""
         if sizes is not None and len(sizes) != len(partials):
@@ -278,7 +282,7 @@ class VehicleCompleter:
             expected = self._vehicle_seconds if finish_by and index > 0 else 0.0
             if started + expected > deadline or (cancel is not None and cancel.is_set()):
                 return None
-            result = self._complete_one(partial, size, merge, band)
+            result = self._complete_one(partial, size, merge, band, spacing)
             self._vehicle_seconds += 0.2 * (time.monotonic() - started - self._vehicle_seconds)
             return result
         run = self._pool.map if self._pool is not None else map
@@ -287,9 +291,9 @@ class VehicleCompleter:
                                  bands if bands is not None else [None] * count)))
 
     def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, merge: bool,
-                      band: np.ndarray | None = None) -> VehicleResult:
+                      band: np.ndarray | None = None, spacing: bool = True) -> VehicleResult:
         """Resample one vehicle to the network's input size (`preprocess.network_input`) and complete it (one
-        task of the thread pool): (num_output, 3) float32 points in the normalised frame (with `even_spacing`, the
+        task of the thread pool): (num_output, 3) float32 points in the normalised frame (with `spacing`, the
         network's points evenly spaced: `spacing.even_spacing`) and, per point, the
         row of `partial` it copies (-1: generated); with `merge`, merged with a pool of all its measured points
         (`merge.merge_with_pool`; a single frame's crop or a track's fused partial alike, and the ground-band points
@@ -301,10 +305,10 @@ class VehicleCompleter:
         with torch.inference_mode():   # thread-local: set in the thread that runs the model
             out = self.model(torch.from_numpy(partial[rows]).unsqueeze(0).to(self.device), shape)
             completion = out.completion[0].float().cpu().numpy()
-            graph = out.neighbours[0].cpu().numpy() if self.even_spacing else None
+            graph = out.neighbours[0].cpu().numpy() if spacing else None
             frame = out.box_frame[0].double().cpu().numpy() if out.box_frame is not None else None
         if graph is not None:
-            completion = spacing.even_spacing(completion, graph=graph)
+            completion = even_spacing(completion, graph=graph)
         if not merge:
             return completion, np.full(len(completion), -1, np.int64), frame
         merged = merge_with_pool(completion, partial, band=band)
@@ -395,7 +399,7 @@ class VehicleCompleter:
         results = self._complete_all([vehicles[i].normalized for i in due], [vehicles[i].box.size for i in due],
                                      self.measured_merge, run_deadline, cancel,
                                      finish_by=cache is not None and math.isfinite(cache.settings.budget_s),
-                                     bands=[vehicles[i].band for i in due])
+                                     bands=[vehicles[i].band for i in due], spacing=self.even_spacing)
         ran = dict(zip(due, results))
         cancelled = cancel is not None and cancel.is_set()
         outputs: list[tuple[np.ndarray, np.ndarray, np.ndarray | None] | None] = []

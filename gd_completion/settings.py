@@ -97,7 +97,7 @@ SETTINGS: dict[str, Setting] = {
                               live=True),
     "even_spacing": Setting(True, "Move the network's points along their own surface until their spacing is even "
                                   "(5 pushes away from the nearest points within the local plane, then 30 % of the "
-                                  "way onto it), before the merge; false publishes the network's points as they come.",
+                                  "way onto it), before the merge; false: the network's points are not moved.",
                             live=True),
     # per-frame work limits (gd_completion.limits.FrameLimits); every skip is a counter in /diagnostics
     "max_boxes": Setting(_LIMITS.max_boxes, "Boxes completed per frame at most, nearest first; the rest are skipped "

@@ -5,7 +5,9 @@ them, and a shell a few centimetres thick. Both cost coverage at a fixed point c
 no point stands for). After the network, each point is pushed away from its nearest neighbours within the plane
 fitted to its neighbourhood (a tangential repulsion, as PU-Net's repulsion term but at inference, with no
 learning), for a few iterations, and then moved part of the way onto that plane, which thins the shell. The points
-stay on the surface the network estimated: the spacing evens out, the shape does not change. Deterministic and
+stay on the surface the network estimated: the spacing evens out and the shape stays (the pushes move a point by
+at most 5 x 0.3 of the median spacing along its plane; where a shell has an edge, its edge points move outwards by
+about that). Deterministic and
 batch independent; compiled (numba): about 2.8 ms for 2,048 points on one core with the network's kNN graph (the
 neighbour search 1.6 ms, the planes and pushes 1.2 ms). Measured in docs/MODEL.md ("Even spacing",
 `benchmarks/spacing_variants.py`); `SpacingSettings()` are the shipped values.
@@ -26,9 +28,10 @@ _GRID_CELL = 0.072      # normalised units: the grid of the neighbour search (as
 
 @dataclass(frozen=True)
 class SpacingSettings:
-    """`iterations` of the tangential push away from the `neighbours` nearest points, each moving a point by at
-    most `step` times the cloud's median nearest-neighbour distance; then `flatten` (0..1) of the distance to its
-    neighbourhood's plane removed. `iterations=0` and `flatten=0` leave the points as they are."""
+    """`iterations` of the tangential push away from the `neighbours` nearest points, each pass moving a point by at
+    most `step` times the cloud's median nearest-neighbour distance (the weighted mean direction away from them);
+    then `flatten` (0..1) of the distance to its neighbourhood's plane removed. `iterations=0` and `flatten=0` leave
+    the points as they are."""
 
     iterations: int = 5
     neighbours: int = 8
@@ -84,7 +87,7 @@ def even_spacing(points: np.ndarray, settings: SpacingSettings = SpacingSettings
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _two_hop_nearest(points: np.ndarray, graph: np.ndarray, k: int) -> np.ndarray:
     """(N, k) int64: each point's k nearest among its `graph` neighbours and theirs (itself excluded), ascending;
-    where fewer than k are found, the nearest found fills the rest (the point itself where none is)."""
+    where fewer than k are found, the point itself fills the rest (its plane counts it again, the pushes skip it)."""
     n, g = graph.shape
     out = np.empty((n, k), np.int64)
     seen = np.full(n, -1, np.int64)
@@ -134,7 +137,7 @@ def _two_hop_nearest(points: np.ndarray, graph: np.ndarray, k: int) -> np.ndarra
             best_d[pos] = d
             best_i[pos] = j
         for s in range(k):
-            out[i, s] = best_i[s] if s < count else (best_i[0] if count else i)
+            out[i, s] = best_i[s] if s < count else i
     return out
 
 
@@ -203,7 +206,14 @@ def _plane(points: np.ndarray, nbr: np.ndarray, i: int, centre: np.ndarray, norm
     if best <= 1e-12 * (spread2 * spread2):
         normal[:] = 0.0   # the smallest eigenvalue is repeated: a line-like neighbourhood has no plane
         return
+    # one sign for one plane (its largest component positive): repeated points get the same tangent, and part
     normal /= math.sqrt(best)
+    big = 0
+    for c in range(1, 3):
+        if abs(normal[c]) > abs(normal[big]):
+            big = c
+    if normal[big] < 0.0:
+        normal *= -1.0
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -248,6 +258,8 @@ def _spread_cloud(points: np.ndarray, nbr: np.ndarray, iterations: int, neighbou
                 nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
                 for s in range(neighbours):
                     j = nbr[i, s]
+                    if j == i:   # a row padded with the point itself (no neighbour found)
+                        continue
                     dx, dy, dz = cur[i, 0] - cur[j, 0], cur[i, 1] - cur[j, 1], cur[i, 2] - cur[j, 2]
                     d2 = dx * dx + dy * dy + dz * dz
                     if d2 > 0.0:

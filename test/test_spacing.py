@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gd_completion.spacing import SpacingSettings, _plane, even_spacing
+from gd_completion.spacing import SpacingSettings, _plane, _two_hop_nearest, even_spacing
 
 
 def clumped_square(seed: int = 0) -> np.ndarray:
@@ -84,6 +84,52 @@ def test_batches_are_spaced_cloud_by_cloud() -> None:
         assert np.array_equal(out[b], even_spacing(batch[b]))
 
 
+def knn_graph(points: np.ndarray, k: int = 8) -> np.ndarray:
+    return cKDTree(points).query(points, k + 1)[1][:, 1:]
+
+
+def test_two_hops_find_the_nearest_in_ascending_order() -> None:
+    points = clumped_square(4)
+    points[:, 2] = np.random.default_rng(4).normal(0.0, 0.01, len(points))
+    found = _two_hop_nearest(points, knn_graph(points), 16)
+    exact = knn_graph(points, 16)
+    padded = found == np.arange(len(points))[:, None]                       # fewer than 16 found: itself after them
+    assert padded.any() and not (np.diff(padded.astype(int), axis=1) < 0).any()
+    dist = np.where(padded, 1e9, np.linalg.norm(points[found] - points[:, None], axis=2))
+    assert (np.diff(dist, axis=1) >= 0).all()                               # ascending
+    assert np.mean([len(set(a) & set(b)) / 16 for a, b in zip(found, exact)]) > 0.9
+    # a point whose graph row holds only itself gets itself (no neighbour), and is not pushed
+    graph = knn_graph(points)
+    graph[graph == 7] = graph[0, 0]   # nobody points at 7
+    graph[7] = 7                      # and 7 at nobody else
+    assert (_two_hop_nearest(points, graph, 16)[7] == 7).all()
+    assert np.array_equal(even_spacing(points, SpacingSettings(flatten=0.0), graph=graph)[7], points[7])
+
+
+def test_the_graph_path_spreads_like_the_search() -> None:
+    points = clumped_square(5)
+    spaced = even_spacing(points, graph=knn_graph(points))
+    assert np.abs(spaced[:, 2]).max() < 1e-6
+    before, after = nn_distances(points), nn_distances(spaced)
+    assert after.std() / after.mean() < 0.85 * before.std() / before.mean()
+    twice = np.repeat(points[:300], 2, axis=0)                               # repeated points, graph path
+    assert nn_distances(even_spacing(twice, graph=knn_graph(twice))).min() > 0.0
+
+
+def test_small_and_degenerate_clouds() -> None:
+    rng = np.random.default_rng(6)
+    for n in (3, 5, 9, 17, 20):
+        cloud = rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32)
+        out = even_spacing(cloud)
+        assert out.shape == (n, 3) and np.isfinite(out).all()
+        assert np.abs(out - cloud).max() < 1.0
+    same = np.full((50, 3), 0.25, np.float32)                               # one point, repeated
+    assert np.array_equal(even_spacing(same), same)
+    line = np.column_stack([np.linspace(0, 1, 40), np.zeros(40), np.zeros(40)]).astype(np.float32)
+    out = even_spacing(line)                                                # no plane anywhere: the line stays one
+    assert np.isfinite(out).all() and np.abs(out[:, 1:]).max() < 1e-6
+
+
 def test_plane_normal_is_the_smallest_eigenvector() -> None:
     rng = np.random.default_rng(3)
     points = rng.normal(size=(200, 3)) * [1.0, 0.5, 0.05]
@@ -98,6 +144,16 @@ def test_plane_normal_is_the_smallest_eigenvector() -> None:
         assert abs(abs(normal @ vectors[:, 0]) - 1.0) < 1e-6
     line = np.column_stack([np.arange(20.0), np.zeros(20), np.zeros(20)])   # no plane through a line
     _plane(line, np.tile(np.arange(1, 17), (20, 1)), 0, centre, normal)
+    assert not normal.any()
+    angle = np.linspace(0, 2 * np.pi, 17)[:-1]                              # a round disc: two equal eigenvalues
+    disc = np.column_stack([np.cos(angle), np.sin(angle), np.zeros(16)]) @ np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    disc = np.vstack([np.zeros(3), disc])
+    _plane(disc, np.arange(1, 17)[None], 0, centre, normal)
+    plane_normal = np.cross(disc[1], disc[5])
+    assert abs(abs(normal @ plane_normal) / np.linalg.norm(plane_normal) - 1.0) < 1e-9
+    assert normal[np.argmax(np.abs(normal))] > 0                             # one sign per plane
+    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)   # isotropic
+    _plane(np.vstack([np.zeros(3), cube]), np.arange(1, 9)[None], 0, centre, normal)
     assert not normal.any()
 
 

@@ -53,8 +53,8 @@ PANDASET_CLASSES: dict[str, tuple[str, ...]] = {
     "Towed Object": ("trailer",),
 }
 
-#: Inputs classified, in report order: the raw partial scan, the mirror + template prior, GGD-Net's P_o, what
-#: the pipeline publishes (P_o after the measured merge) and the upper bound (complete shape or aggregate).
+#: Inputs classified, in report order: the raw partial scan, the mirror + template prior, GGD-Net's P_o evenly spaced,
+#: what the pipeline publishes (that after the measured merge) and the upper bound (complete shape or aggregate).
 INPUT_NAMES: tuple[str, ...] = ("input", "mirror_template", "ggd", "ggd_merge", "complete")
 INPUT_TITLES: dict[str, str] = {"input": "raw partial input", "mirror_template": "mirror + template prior",
                                 "ggd": "GGD-Net (network output, evenly spaced)",
