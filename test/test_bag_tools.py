@@ -109,6 +109,7 @@ def test_complete_without_measured_merge(kitti_bag: Path, completed_bag: Path, m
     params = json.loads(read_provenance(out)["gd_completion.parameters"])
     assert params["completer"]["measured_merge"] is False
     assert json.loads(read_provenance(completed_bag)["gd_completion.parameters"])["completer"]["measured_merge"]
+    assert json.loads(read_provenance(completed_bag)["gd_completion.parameters"])["completer"]["even_spacing"]
     num_output = load_model(model_path).config.num_output
     for bag, merged in ((out, False), (completed_bag, True)):
         vehicles = 0

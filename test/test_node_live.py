@@ -457,7 +457,11 @@ def test_param_set_applied_or_refused(marker_node, frames, ros_context):
     unmerged = read_points(client.send_until_reply(frames[3]))
     for iid in np.unique(unmerged["instance_id"]).tolist():
         assert (unmerged[unmerged["instance_id"] == iid]["generated"] == 1).sum() == NUM_OUTPUT
-    assert set_params(measured_merge=True)[0].successful
+    assert set_params(even_spacing=False)[0].successful      # live: the network's points are not moved
+    unspaced = read_points(client.send_until_reply(frames[3]))
+    xyz = lambda cloud: np.stack([cloud["x"], cloud["y"], cloud["z"]], 1)  # noqa: E731
+    assert len(unspaced) == len(unmerged) and not np.allclose(xyz(unspaced), xyz(unmerged), atol=1e-3)
+    assert all(r.successful for r in set_params(even_spacing=True, measured_merge=True))
     refused = set_params(cloud_topic="elsewhere")[0]          # read-only: refused with a reason
     assert not refused.successful and "read-only" in refused.reason
     refused = set_params(crop_margin=-0.5)[0]                 # in the declared range, but not -1 nor >= 0
