@@ -18,13 +18,11 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from gd_completion.datasets.pandaset import PandaSetSequence
 from gd_completion.evaluation import pandaset_eval as pe
 from gd_completion.evaluation.baselines import _resampled, network_forward
 from gd_completion.evaluation.nearest import nearest_sq
@@ -32,7 +30,7 @@ from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.kernels import fps_pruned
 from gd_completion.merge import POOL_VOXEL, merge_measured, merge_with_pool, mirrored
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
-from gd_completion.preprocess import Preprocessing, with_band
+from gd_completion.preprocess import with_band
 from gd_completion.sampling import voxel_first_indices
 from gd_completion.spacing import even_spacing
 
@@ -83,16 +81,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = load_model(args.model)
-    sequence = PandaSetSequence(args.pandaset)
-    tracks = pe.collect_tracks(sequence, pe.stationary_vehicles(sequence, pe.SENSORS),
-                               replace(Preprocessing(), min_points=1), sensors=pe.SENSORS)
-    observations = []
-    for track in tracks.values():
-        picks = track.input_frames(pe.MIN_INPUT_POINTS, 8)
-        if picks and len(set(track.frames)) > 1:
-            reference = pe.random_reference(track.aggregate(), pe.RANDOM_REFERENCE_POINTS, seed=track.instance_id)
-            observations += [(track.points[k], np.array(track.boxes[k].size), reference, track.bands[k])
-                             for k in picks]
+    observations = pe.reduced_observations(args.pandaset)
     batch, rows = _resampled([o[0] for o in observations], model.config.num_input)
     _, completions, graph = network_forward(model, batch, np.array([o[1] for o in observations]))
     if not args.raw:   # as the pipeline: the network's points evenly spaced before any merge

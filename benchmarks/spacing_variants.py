@@ -17,12 +17,10 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 
 import numpy as np
 import torch
 
-from gd_completion.datasets.pandaset import PandaSetSequence
 from gd_completion.evaluation import pandaset_eval as pe
 from gd_completion.evaluation.baselines import network_forward
 from gd_completion.evaluation.mesh_distance import distances_to_meshes, surface_shares
@@ -31,7 +29,7 @@ from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.evaluation.synthetic import _chamfer_row, load_heldout_meshes
 from gd_completion.merge import merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
-from gd_completion.preprocess import Preprocessing, with_band
+from gd_completion.preprocess import with_band
 from gd_completion.spacing import SpacingSettings, even_spacing
 
 
@@ -46,21 +44,6 @@ def spaced(spec: str, raw: np.ndarray, graph: np.ndarray) -> tuple[np.ndarray, f
         settings = SpacingSettings(iterations=int(iterations), step=float(step), flatten=float(flatten))
         out = even_spacing(raw, settings, graph=None if exact else graph)
     return out, 1e3 * (time.perf_counter() - start) / max(len(raw), 1)
-
-
-def pandaset_observations(root: str) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """(partial, box size, reference, ground band) of the reduced protocol's observations."""
-    sequence = PandaSetSequence(root)
-    tracks = pe.collect_tracks(sequence, pe.stationary_vehicles(sequence, pe.SENSORS),
-                               replace(Preprocessing(), min_points=1), sensors=pe.SENSORS)
-    observations = []
-    for track in tracks.values():
-        picks = track.input_frames(pe.MIN_INPUT_POINTS, 8)
-        if picks and len(set(track.frames)) > 1:
-            reference = pe.random_reference(track.aggregate(), pe.RANDOM_REFERENCE_POINTS, seed=track.instance_id)
-            observations += [(track.points[k], np.array(track.boxes[k].size), reference, track.bands[k])
-                             for k in picks]
-    return observations
 
 
 def by_bucket(values: list[float], where: np.ndarray, bins: list[str]) -> str:
@@ -79,7 +62,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = load_model(args.model)
-    observations = pandaset_observations(args.pandaset)
+    observations = pe.reduced_observations(args.pandaset)
     _, raw, graph = network_forward(model, [o[0] for o in observations], np.array([o[1] for o in observations]))
     bins = [name for name, *_ in pe.SIZE_BINS]
     where = np.array([pe.size_bin(len(o[0])) for o in observations])

@@ -97,17 +97,12 @@ def _two_hop_nearest(points: np.ndarray, graph: np.ndarray, k: int) -> np.ndarra
     for i in range(n):
         seen[i] = i
         m = 0
-        for s in range(g):
-            j = graph[i, s]
-            if seen[j] != i:
-                seen[j] = i
-                cand[m] = j
-                m += 1
-            for t in range(g):
-                jj = graph[j, t]
-                if seen[jj] != i:
-                    seen[jj] = i
-                    cand[m] = jj
+        for s in range(g):   # the neighbours, then each one's neighbours, each candidate once
+            for t in range(-1, g):
+                j = graph[i, s] if t < 0 else graph[graph[i, s], t]
+                if seen[j] != i:
+                    seen[j] = i
+                    cand[m] = j
                     m += 1
         # the k nearest candidates: fill, then replace the farthest kept while a candidate is nearer
         count = min(m, k)
@@ -160,15 +155,8 @@ def _plane(points: np.ndarray, nbr: np.ndarray, i: int, centre: np.ndarray, norm
     plane (the covariance's smallest eigenvector, closed form); a zero normal where no plane is defined (the
     neighbourhood is a line or a point)."""
     k = nbr.shape[1]
-    cx, cy, cz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
-    for s in range(k):
-        j = nbr[i, s]
-        cx += points[j, 0]
-        cy += points[j, 1]
-        cz += points[j, 2]
-    cx /= k + 1
-    cy /= k + 1
-    cz /= k + 1
+    _centre(points, nbr, i, centre)
+    cx, cy, cz = centre[0], centre[1], centre[2]
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0
     for s in range(-1, k):
         j = i if s < 0 else nbr[i, s]
@@ -179,7 +167,6 @@ def _plane(points: np.ndarray, nbr: np.ndarray, i: int, centre: np.ndarray, norm
         a11 += y * y
         a12 += y * z
         a22 += z * z
-    centre[0], centre[1], centre[2] = cx, cy, cz
     normal[:] = 0.0
     q = (a00 + a11 + a22) / 3.0
     off = a01 * a01 + a02 * a02 + a12 * a12

@@ -267,6 +267,25 @@ class PandaSetResult:
     voxel_points: int = REFERENCE_POINTS
 
 
+def reduced_observations(root: str | Path, max_frames_per_vehicle: int = 8
+                         ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The reduced protocol's observations, for quick comparisons (`benchmarks/merge_variants.py`,
+    `benchmarks/spacing_variants.py`): (normalised partial, box size, random multi-frame reference, ground-band
+    points) of at most `max_frames_per_vehicle` frames x sensors of every stationary vehicle seen in more than one
+    frame, exact boxes."""
+    sequence = PandaSetSequence(root)
+    tracks = collect_tracks(sequence, stationary_vehicles(sequence, SENSORS), replace(Preprocessing(), min_points=1),
+                            sensors=SENSORS)
+    observations = []
+    for track in tracks.values():
+        picks = track.input_frames(MIN_INPUT_POINTS, max_frames_per_vehicle)
+        if picks and len(set(track.frames)) > 1:
+            reference = random_reference(track.aggregate(), RANDOM_REFERENCE_POINTS, seed=track.instance_id)
+            observations += [(track.points[k], np.array(track.boxes[k].size), reference, track.bands[k])
+                             for k in picks]
+    return observations
+
+
 def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle: int | None = None,
                       max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS,
                       random_points: int = RANDOM_REFERENCE_POINTS, max_batch: int = 32, n_examples: int = 4,
