@@ -5,10 +5,13 @@ shipped merge (`merge.merge_with_pool`, the ground band pooled on PandaSet):
   `benchmarks/merge_variants.py`): coverage error x1e3 of the network's points (spaced, before the merge) and of
   the published output, overall and per input-size bucket, and the published output's fidelity x1e3;
 - the held-out meshes (`evaluation.synthetic.load_heldout_meshes`, as `gd-completion evaluate`): the published
-  output's CD, CD(D,G) x1e4, F-score@1 % and share of points within 2 % of the length of the true mesh surface.
+  output's CD, CD(D,G) x1e4, F-score@1 % and share of points within 2 % of the length of the true mesh surface;
+- with --consistency, track fusion's frame-to-frame consistency on PandaSet-002 (`evaluation.fusion_eval`, as
+  `gd-completion evaluate`: Chamfer x1e4 between consecutive published completions, single-frame and fused, and
+  their ratio, parked and moving vehicles; about 100 s per variant; `exact:` variants are not supported there).
 
     python benchmarks/spacing_variants.py [--model PT] [--pandaset DIR] [--meshes DIR] [--heldout N]
-                                          [--variants SPEC ...]
+                                          [--variants SPEC ...] [--consistency]
 
 A SPEC is `ITERATIONS:STEP:FLATTEN` (`spacing.SpacingSettings` with 8 neighbours), `none` (the raw P_o) or
 `exact:ITERATIONS:STEP:FLATTEN` (the planes' 16 nearest searched among all points instead of the network's graph
@@ -23,6 +26,7 @@ import torch
 
 from gd_completion.evaluation import pandaset_eval as pe
 from gd_completion.evaluation.baselines import network_forward
+from gd_completion.evaluation.fusion_eval import evaluate_fusion
 from gd_completion.evaluation.mesh_distance import distances_to_meshes, surface_shares
 from gd_completion.evaluation.nearest import nearest_sq
 from gd_completion.evaluation.priors import prior_outputs
@@ -33,17 +37,35 @@ from gd_completion.preprocess import with_band
 from gd_completion.spacing import SpacingSettings, even_spacing
 
 
+def settings_of(spec: str) -> SpacingSettings | None:
+    """The `SpacingSettings` of a SPEC (None for `none`)."""
+    if spec == "none":
+        return None
+    iterations, step, flatten = spec.removeprefix("exact:").split(":")
+    return SpacingSettings(iterations=int(iterations), step=float(step), flatten=float(flatten))
+
+
 def spaced(spec: str, raw: np.ndarray, graph: np.ndarray) -> tuple[np.ndarray, float]:
     """The variant's points (B, N_o, 3) and its ms per vehicle."""
     start = time.perf_counter()
-    if spec == "none":
+    settings = settings_of(spec)
+    if settings is None:
         out = raw.copy()
     else:
-        exact = spec.startswith("exact:")
-        iterations, step, flatten = spec.removeprefix("exact:").split(":")
-        settings = SpacingSettings(iterations=int(iterations), step=float(step), flatten=float(flatten))
-        out = even_spacing(raw, settings, graph=None if exact else graph)
+        out = even_spacing(raw, settings, graph=None if spec.startswith("exact:") else graph)
     return out, 1e3 * (time.perf_counter() - start) / max(len(raw), 1)
+
+
+def print_consistency(model: torch.nn.Module, root: str, variants: list[str]) -> None:
+    """Track fusion's consistency (`fusion_eval.evaluate_fusion`) per variant."""
+    print("track fusion consistency, Chamfer x1e4 between consecutive published completions: single-frame / fused / "
+          "fused over single, parked | moving")
+    for spec in variants:
+        if spec.startswith("exact:"):
+            continue
+        result = evaluate_fusion(model, root, spacing=settings_of(spec))
+        rows = " | ".join(f"{row.single:.3f} / {row.fused:.3f} / {row.ratio:.3f}" for row in result.consistency)
+        print(f"{spec:18s} {rows}", flush=True)
 
 
 def by_bucket(values: list[float], where: np.ndarray, bins: list[str]) -> str:
@@ -59,6 +81,7 @@ def main() -> None:
     parser.add_argument("--heldout", type=int, default=128, help="held-out mesh pairs (as the evaluation)")
     parser.add_argument("--variants", nargs="*", default=["none", "5:0.3:0", "0:0.3:0.3", "5:0.3:0.3", "8:0.3:0.3",
                                                           "5:0.3:0.45", "exact:5:0.3:0.3"])
+    parser.add_argument("--consistency", action="store_true", help="also track fusion's consistency per variant")
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = load_model(args.model)
@@ -87,6 +110,8 @@ def main() -> None:
         print(f"{spec:18s} {by_bucket(network, where, bins)} | {by_bucket(published, where, bins)} | "
               f"{by_bucket(fidelity, where, bins)} | {ms:.2f} || {row['cd']:.2f} {row['cd_dg']:.2f} "
               f"{row['f_score']:.3f} {surface_shares(distance)[0]:.3f}", flush=True)
+    if args.consistency:
+        print_consistency(model, args.pandaset, args.variants)
 
 
 if __name__ == "__main__":

@@ -45,7 +45,10 @@ class SpacingSettings:
             raise ValueError("spacing: step and flatten must lie in [0, 1]")
 
 
-def even_spacing(points: np.ndarray, settings: SpacingSettings = SpacingSettings(),
+SHIPPED_SPACING = SpacingSettings()   # the pipeline's (`VehicleCompleter(even_spacing=True)`) and the evaluation's
+
+
+def even_spacing(points: np.ndarray, settings: SpacingSettings = SHIPPED_SPACING,
                  graph: np.ndarray | None = None) -> np.ndarray:
     """`points` (N, 3) or (B, N, 3), finite, evenly spaced along their own surface (see the module); the same shape,
     float32. Each point's `PLANE_NEIGHBOURS` nearest are searched among all points, or, given a neighbour `graph`

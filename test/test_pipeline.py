@@ -267,6 +267,10 @@ def test_even_spacing_is_the_same_in_the_pipeline_and_the_evaluation() -> None:
     np.testing.assert_array_equal(evaluated.completion, spaced)
     merged = VehicleCompleter(model).complete_normalized(partials, sizes)
     np.testing.assert_array_equal(merged, evaluated.published)
+    unspaced = published_outputs(model, partials, np.array(sizes), spacing=None)   # the evaluation with it off
+    np.testing.assert_array_equal(unspaced.completion, raw)
+    unmerged.measured_merge, unmerged.even_spacing = True, False
+    np.testing.assert_array_equal(unmerged.complete_normalized(partials, sizes), unspaced.published)
     # spacing moves the network's points: their nearest-neighbour spacing is more even than the raw P_o's
     variation = [(lambda d: d.std() / d.mean())(cKDTree(c).query(c, 2)[0][:, 1]) for c in (raw[0], spaced[0])]
     assert variation[1] < 0.9 * variation[0], variation

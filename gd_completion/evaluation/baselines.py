@@ -10,7 +10,7 @@ import torch
 from gd_completion.merge import merge_with_pool, mirrored
 from gd_completion.model.network import GGDNet, box_shape
 from gd_completion.sampling import resample_indices
-from gd_completion.spacing import even_spacing
+from gd_completion.spacing import SHIPPED_SPACING, SpacingSettings, even_spacing
 
 # Report order; "generation" is GGD-Net's generation-only branch P_g = concat(P_c, P_s); "box_fill",
 # "template" and "mirror_template" are the box-only priors of `priors` (no learning); "ggd_raw" is the network's
@@ -139,17 +139,18 @@ class NetworkOutputs:
 
 def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
                       sizes: np.ndarray | Sequence[Sequence[float]] | None = None, max_batch: int = 32,
-                      bands: Sequence[np.ndarray] | None = None) -> NetworkOutputs:
-    """`network_outputs` of partial clouds of any size, their completions evenly spaced (`spacing.even_spacing`) and
-    then merged with a pool of all their measured points (`merge.merge_with_pool`), as the pipeline does for single
-    frames and tracks' fused partials alike; `bands`: each cloud's ground-band points
-    (`preprocess.CroppedVehicle.band`), pooled too."""
+                      bands: Sequence[np.ndarray] | None = None,
+                      spacing: SpacingSettings | None = SHIPPED_SPACING) -> NetworkOutputs:
+    """`network_outputs` of partial clouds of any size, their completions evenly spaced (`spacing.even_spacing` with
+    `spacing`; None: the raw P_o, as the pipeline's `even_spacing` off) and then merged with a pool of all their
+    measured points (`merge.merge_with_pool`), as the pipeline does for single frames and tracks' fused partials
+    alike; `bands`: each cloud's ground-band points (`preprocess.CroppedVehicle.band`), pooled too."""
     partials = [np.asarray(p, np.float32).reshape(-1, 3) for p in partials]
     if bands is not None and len(bands) != len(partials):
         raise ValueError(f"{len(partials)} partial clouds but {len(bands)} ground bands")
     batch = _resampled(partials, model.config.num_input)[0]
     generated, raw, graph = network_forward(model, batch, sizes, max_batch)
-    completion = even_spacing(raw, graph=graph)
+    completion = even_spacing(raw, spacing, graph=graph) if spacing is not None else raw.copy()
     merged = [merge_with_pool(c, p, band=None if bands is None else bands[i]).points
               for i, (p, c) in enumerate(zip(partials, completion))]
     return NetworkOutputs(generated, raw, completion, np.stack(merged) if merged else completion.copy())

@@ -13,6 +13,7 @@ from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_senso
 from gd_completion.geometry import box_problem, finite_mask
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
+from gd_completion.spacing import SHIPPED_SPACING, SpacingSettings
 
 from .baselines import published_outputs
 from .metrics import CD_SCALE, COVERAGE_SCALE, chamfer, coverage_error
@@ -294,7 +295,8 @@ def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles:
 def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None = None, consistency_frames: int = 10,
                     max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS, max_batch: int = 32,
                     preprocessing: Preprocessing | None = None, frames: Sequence[int] | None = None,
-                    fusion_factory: Callable[[], Fusion] | None = None) -> FusionResult:
+                    fusion_factory: Callable[[], Fusion] | None = None,
+                    spacing: SpacingSettings | None = SHIPPED_SPACING) -> FusionResult:
     """Feed PandaSet's vehicles frame by frame to TrackFusion and complete the fused partials.
 
     Coverage (stationary vehicles seen in >= 2 frames, reference = all frames' points): the raw fused points,
@@ -302,7 +304,8 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     all of them); at k = RATIO_FRAMES also `library_oracle` with the other stationary vehicles' references.
     Consistency (stationary and moving): Chamfer between completions in consecutive frames among the first
     `consistency_frames` frames of each vehicle, frames with >= MIN_INPUT_POINTS points only.
-    `max_vehicles`, `frames`, `fusion_factory`: as `fuse_drive`.
+    `max_vehicles`, `frames`, `fusion_factory`: as `fuse_drive`; `spacing`: the completions' even spacing (as
+    `published_outputs`; None: off).
     """
     max_frames = None if max_frames is None else max(1, max_frames)
     drive = fuse_drive(root, max_frames=max_frames, max_vehicles=max_vehicles, preprocessing=preprocessing,
@@ -318,10 +321,10 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     # (the published completion: the network's after the measured merge, as the pipeline gives it)
     fused_in = [chosen[i].fused[p] for i, p in fused_keys]
     fused = published_outputs(model, fused_in, np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(-1, 3),
-                              max_batch=max_batch, bands=[chosen[i].bands[p] for i, p in fused_keys])
+                              max_batch=max_batch, bands=[chosen[i].bands[p] for i, p in fused_keys], spacing=spacing)
     single_in = [chosen[i].single[p] for i, p in single_keys]
     single = published_outputs(model, single_in, np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(
-        -1, 3), max_batch=max_batch, bands=[chosen[i].bands[p] for i, p in single_keys])
+        -1, 3), max_batch=max_batch, bands=[chosen[i].bands[p] for i, p in single_keys], spacing=spacing)
     fused_done, single_done = dict(zip(fused_keys, fused.published)), dict(zip(single_keys, single.published))
     fused_network, single_network = dict(zip(fused_keys, fused.completion)), dict(zip(single_keys, single.completion))
     seconds["network"] = time.perf_counter() - t2
