@@ -200,9 +200,11 @@ def test_vehicle_alone_equals_vehicle_among_63_others(scans, model):
     with torch.inference_mode():              # one batched forward and the same merge: the same bits as well
         batched = model(torch.from_numpy(scans["partial"]), _shapes(scans)).completion.numpy()
     evaluated = published_outputs(model, partials, scans["size"], max_batch=64)   # the evaluation's path
-    assert np.array_equal(evaluated.completion, batched)
+    assert np.array_equal(evaluated.raw, batched)
     assert np.array_equal(evaluated.published, frame)
     unmerged = VehicleCompleter(model, threads=1, measured_merge=False)
+    assert np.array_equal(unmerged.complete_normalized(partials[:3], scans["size"][:3]), evaluated.completion[:3])
+    unmerged.even_spacing = False
     assert np.array_equal(unmerged.complete_normalized(partials[:3], scans["size"][:3]), batched[:3])
 
 

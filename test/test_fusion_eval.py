@@ -11,6 +11,7 @@ from test_evaluation import TINY
 
 from gd_completion.evaluation import fusion_eval
 from gd_completion.model import GGDNet
+from gd_completion.spacing import SHIPPED_SPACING
 
 
 def _pts(*rows):
@@ -135,16 +136,18 @@ def test_fused_and_single_partials_are_both_scored_through_the_published_merge(s
     calls = []
     scored = fusion_eval.published_outputs
 
-    def recording(model, partials, sizes=None, max_batch=32, bands=None):
-        calls.append((len(partials), len(bands)))
-        return scored(model, partials, sizes, max_batch=max_batch, bands=bands)
+    def recording(model, partials, sizes=None, max_batch=32, bands=None, spacing=None):
+        calls.append((len(partials), len(bands), spacing))
+        return scored(model, partials, sizes, max_batch=max_batch, bands=bands, spacing=spacing)
 
     monkeypatch.setattr(fusion_eval, "published_outputs", recording)
     torch.manual_seed(0)
     fusion_eval.evaluate_fusion(GGDNet(TINY).eval(), root, frames=range(0, 3), max_frames=3, consistency_frames=2,
                                 max_vehicles=1, reference_points=256)
-    # the fused partials, then the frames alone, each with its frame's ground band (pooled as the pipeline does)
-    assert len(calls) == 2 and all(count == bands > 0 for count, bands in calls)
+    # the fused partials, then the frames alone, each with its frame's ground band (pooled as the pipeline does),
+    # evenly spaced as the pipeline's default
+    assert len(calls) == 2 and all(count == bands > 0 for count, bands, _ in calls)
+    assert all(spacing == SHIPPED_SPACING for *_, spacing in calls)
 
 
 def test_fusion_section_text():
