@@ -33,6 +33,7 @@ from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.evaluation.synthetic import _chamfer_row, load_heldout_meshes
 from gd_completion.merge import merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import with_band
 from gd_completion.spacing import SpacingSettings, even_spacing
 
@@ -56,7 +57,7 @@ def spaced(spec: str, raw: np.ndarray, graph: np.ndarray) -> tuple[np.ndarray, f
     return out, 1e3 * (time.perf_counter() - start) / max(len(raw), 1)
 
 
-def print_consistency(model: torch.nn.Module, root: str, variants: list[str]) -> None:
+def print_consistency(model: GGDNet, root: str, variants: list[str]) -> None:
     """Track fusion's consistency (`fusion_eval.evaluate_fusion`) per variant."""
     print("track fusion consistency, Chamfer x1e4 between consecutive published completions: single-frame / fused / "
           "fused over single, parked | moving")

@@ -79,7 +79,8 @@ def even_spacing(points: np.ndarray, settings: SpacingSettings = SHIPPED_SPACING
         k = min(PLANE_NEIGHBOURS, n - 1)
         for c in range(b):
             if graph is None:
-                nbr = knn(clouds[c:c + 1], clouds[c:c + 1], k, _GRID_CELL, 64, False, True, _GRID_CELL)[1][0]
+                nbr = knn(clouds[c:c + 1], clouds[c:c + 1], k, margin=_GRID_CELL, block=64, windowed=False,
+                          exclude_self=True, cell=_GRID_CELL)[1][0]
             else:
                 nbr = _two_hop_nearest(clouds[c], np.ascontiguousarray(graph[c]), k)
             out[c] = _spread_cloud(clouds[c], nbr, settings.iterations, min(settings.neighbours, nbr.shape[1]),
