@@ -13,7 +13,8 @@ shipped merge (`merge.merge_with_pool`, the ground band pooled on PandaSet):
     python benchmarks/spacing_variants.py [--model PT] [--pandaset DIR] [--meshes DIR] [--heldout N]
                                           [--variants SPEC ...] [--consistency]
 
-A SPEC is `ITERATIONS:STEP:FLATTEN` (`spacing.SpacingSettings` with 8 neighbours), `none` (the raw P_o) or
+A SPEC is `ITERATIONS:STEP:FLATTEN[:NEIGHBOURS]` (`spacing.SpacingSettings`, 8 neighbours unless given), `none` (the
+raw P_o) or
 `exact:ITERATIONS:STEP:FLATTEN` (the planes' 16 nearest searched among all points instead of the network's graph
 and two hops). The shipped settings are `5:0.3:0.3`. Also printed: the mirror + template prior, given the band."""
 from __future__ import annotations
@@ -42,8 +43,9 @@ def settings_of(spec: str) -> SpacingSettings | None:
     """The `SpacingSettings` of a SPEC (None for `none`)."""
     if spec == "none":
         return None
-    iterations, step, flatten = spec.removeprefix("exact:").split(":")
-    return SpacingSettings(iterations=int(iterations), step=float(step), flatten=float(flatten))
+    iterations, step, flatten, *neighbours = spec.removeprefix("exact:").split(":")
+    return SpacingSettings(iterations=int(iterations), step=float(step), flatten=float(flatten),
+                           neighbours=int(neighbours[0]) if neighbours else SpacingSettings.neighbours)
 
 
 def spaced(spec: str, raw: np.ndarray, graph: np.ndarray) -> tuple[np.ndarray, float]:

@@ -393,3 +393,29 @@ def test_surface_term_is_the_unsquared_distance_and_trains_on_denser_targets(tmp
     first, second = result.history
     assert "train_surface" not in first and second["train_surface"] > 0   # lambda = 0, then lambda > 0
     assert second["val_surface"] > 0
+
+
+def test_repulsion_term_pushes_clumped_points_apart_and_ignores_spread_ones(tmp_path):
+    """The repulsion term is max(0, r - d)^2 averaged over every point's graph neighbours: 0 for points at least
+    r apart, (r - d)^2 for a closer pair (both directions); its gradient moves the pair apart; with rho > 0 it
+    enters the loss (rho 0: the loss as before, no such term)."""
+    from gd_completion.model.losses import REPULSION_RADIUS, ggd_loss, repulsion
+
+    r = REPULSION_RADIUS
+    points = torch.tensor([[[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [1.0, 0.0, 0.0]]], requires_grad=True)
+    knn = torch.tensor([[[1], [0], [1]]])   # the close pair, each way; the far point to the pair
+    value = repulsion(points, knn)
+    assert value.tolist() == pytest.approx([2 * (r - 0.01) ** 2 / 3])
+    value.sum().backward()
+    assert points.grad[0, 0, 0] > 0 > points.grad[0, 1, 0]   # descent moves them apart along x
+    assert repulsion(points.detach() * 10, knn).tolist() == [0.0]   # spread out: no term
+    partial, complete = _data(16, 0)
+    result = train(TINY, (partial, complete), (partial[:4], complete[:4]), tmp_path, _settings(rho=10.0))
+    first, second = result.history
+    assert first["train_repulsion"] > 0 and second["train_repulsion"] > 0
+    model = GGDNet(TINY).eval()
+    out = model(torch.from_numpy(partial[:2]))
+    plain = ggd_loss(out, torch.from_numpy(complete[:2]), lam=3.0)
+    pushed = ggd_loss(out, torch.from_numpy(complete[:2]), lam=3.0, rho=10.0)
+    assert "repulsion" not in plain
+    assert pushed["total"].item() == pytest.approx(plain["total"].item() + 10.0 * pushed["repulsion"].item())

@@ -1,5 +1,6 @@
 """GGD-Net losses: Chamfer (squared L2), smooth-L1 on control points, umbrella-Laplacian shape loss, and the
-optional surface term (unsquared distance of each output point to the nearest ground-truth point)."""
+optional surface term (unsquared distance of each output point to the nearest ground-truth point) and repulsion
+term (output points closer than `REPULSION_RADIUS` to their graph neighbours pushed apart)."""
 from __future__ import annotations
 
 import torch
@@ -11,6 +12,9 @@ from .ops import flat_index, gather_points, nearest_index, neighbour_mean
 CD_SCALE = 1000.0
 # The surface term is reported in units of 1e-2 (per cent of the vehicle's length).
 SURFACE_SCALE = 100.0
+# The repulsion term's radius (normalised frame): about the spacing of N_o = 2,048 points spread evenly over a car's
+# surface (about 2 square lengths: 1e-3 each, 0.03 apart).
+REPULSION_RADIUS = 0.03
 
 
 def nearest_indices(a: Tensor, b: Tensor, chunk_entries: int = 1 << 22) -> tuple[Tensor, Tensor]:
@@ -79,10 +83,19 @@ def laplacian_loss(deformed: Tensor, reference: Tensor, knn: Tensor) -> Tensor:
     return diff.pow(2).sum(-1).mean()
 
 
-def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5, gamma: float = 0.0
-             ) -> dict[str, Tensor]:
+def repulsion(points: Tensor, knn: Tensor, radius: float = REPULSION_RADIUS) -> Tensor:
+    """(B,): mean over every point of `points` (B, N, 3) and its `knn` (B, N, k) neighbours of max(0, radius - d)^2,
+    d their distance: zero for evenly spread points at least `radius` apart, growing as they clump (PU-Net's
+    repulsion term, with a truncated quadratic instead of its Gaussian-weighted distance)."""
+    gaps = ((points.unsqueeze(2) - gather_points(points, knn)).pow(2).sum(-1) + 1e-12).sqrt()
+    return torch.relu(radius - gaps).pow(2).mean((1, 2))
+
+
+def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5, gamma: float = 0.0,
+             rho: float = 0.0) -> dict[str, Tensor]:
     """L = 1000 (CD(P_s, GT) + lam CD(P_o, GT)) + alpha smoothL1(P_c', P_c) + beta 1000 L_shape
-    [+ gamma 100 surface(P_o, GT) when gamma > 0, with lam > 0: `surface_distance`; a deviation from the paper].
+    [+ gamma 100 surface(P_o, GT) when gamma > 0, with lam > 0: `surface_distance`; a deviation from the paper]
+    [+ rho 1000 repulsion(P_o) on the kNN graph of P_g when rho > 0: `repulsion`; a deviation from the paper].
 
     Returns the terms (batch means, unweighted except for their unit factors) and `total`.
     """
@@ -98,4 +111,7 @@ def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float 
     if to_surface is not None:
         terms["surface"] = to_surface.mean() * SURFACE_SCALE
         total = total + gamma * terms["surface"]
+    if rho > 0:
+        terms["repulsion"] = repulsion(output.completion, output.neighbours).mean() * CD_SCALE
+        total = total + rho * terms["repulsion"]
     return {"total": total, **terms}
