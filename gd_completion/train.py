@@ -37,6 +37,7 @@ class TrainSettings:
     beta: float = 0.5
     gamma: float = 0.0              # weight of the surface term (0: the paper's loss); see losses.ggd_loss
     rho: float = 0.0                # weight of the repulsion term (0: the paper's loss); see losses.ggd_loss
+    tangential: bool = False        # the repulsion term within each point's plane; see losses.repulsion
     batch_size: int = 32
     lr: float = 1e-3                # paper: 0.01; see docs/MODEL.md
     lr_final: float | None = None   # cosine decay per epoch from lr to lr_final (None: constant lr)
@@ -261,7 +262,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             idx = perm[s:s + settings.batch_size]
             x, gt = tr_x[idx].to(device), tr_y[idx].to(device)
             losses = ggd_loss(model(x, _rows(tr_s, idx, device)), gt, lam=lam, alpha=settings.alpha,
-                              beta=settings.beta, gamma=settings.gamma, rho=settings.rho)
+                              beta=settings.beta, gamma=settings.gamma, rho=settings.rho,
+                              tangential=settings.tangential)
             optimizer.zero_grad(set_to_none=True)
             if not _backward(model, losses["total"], settings.max_grad_norm):
                 skipped = _skip_step(epoch, s // settings.batch_size + 1, skipped, settings.max_skipped_steps)

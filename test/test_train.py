@@ -419,3 +419,25 @@ def test_repulsion_term_pushes_clumped_points_apart_and_ignores_spread_ones(tmp_
     pushed = ggd_loss(out, torch.from_numpy(complete[:2]), lam=3.0, rho=10.0)
     assert "repulsion" not in plain
     assert pushed["total"].item() == pytest.approx(plain["total"].item() + 10.0 * pushed["repulsion"].item())
+
+
+def test_tangential_repulsion_spreads_along_the_plane_and_not_off_it():
+    """With `tangential`, distances are measured within each point's least-squares plane: two points stacked along
+    the normal of a flat neighbourhood count as coincident (the full term), and the gradient has no component along
+    that normal, so the term cannot thicken the shell; in 3D the same pair is pushed apart along the normal."""
+    from gd_completion.model.losses import REPULSION_RADIUS, repulsion
+
+    r = REPULSION_RADIUS
+    grid = [[x, y, 0.0] for x in (-0.1, 0.0, 0.1) for y in (-0.1, 0.0, 0.1) if (x, y) != (0.0, 0.0)]
+    points = torch.tensor([[[0.0, 0.0, 0.002], [0.0, 0.0, -0.002], *grid]], requires_grad=True)
+    n = points.shape[1]
+    rows = [[1] + list(range(2, n)), [0] + list(range(2, n))]   # the pair: the other one and the grid
+    rows += [[j for j in range(n) if j != i] for i in range(2, n)]   # the grid points: every other point
+    knn = torch.tensor([rows])
+    flat = repulsion(points, knn, tangential=True)
+    assert flat.item() == pytest.approx(2 * r ** 2 / (n * (n - 1)), rel=1e-3)   # the stacked pair: d = 0 within the plane
+    flat.sum().backward()
+    assert points.grad[0, :2, 2].abs().max() < 1e-9   # nothing along the normal
+    points.grad = None
+    repulsion(points, knn).sum().backward()
+    assert points.grad[0, 0, 2] < 0 < points.grad[0, 1, 2]   # in 3D: descent moves the pair apart along z

@@ -83,19 +83,35 @@ def laplacian_loss(deformed: Tensor, reference: Tensor, knn: Tensor) -> Tensor:
     return diff.pow(2).sum(-1).mean()
 
 
-def repulsion(points: Tensor, knn: Tensor, radius: float = REPULSION_RADIUS) -> Tensor:
+def repulsion(points: Tensor, knn: Tensor, radius: float = REPULSION_RADIUS, tangential: bool = False) -> Tensor:
     """(B,): mean over every point of `points` (B, N, 3) and its `knn` (B, N, k) neighbours of max(0, radius - d)^2,
     d their distance: zero for evenly spread points at least `radius` apart, growing as they clump (PU-Net's
-    repulsion term, with a truncated quadratic instead of its Gaussian-weighted distance)."""
-    gaps = ((points.unsqueeze(2) - gather_points(points, knn)).pow(2).sum(-1) + 1e-12).sqrt()
+    repulsion term, with a truncated quadratic instead of its Gaussian-weighted distance). `tangential`: d measured
+    within the point's plane (the least-squares plane of it and its neighbours, held fixed), so the term spreads
+    points along the surface and not off it."""
+    offsets = points.unsqueeze(2) - gather_points(points, knn)
+    if tangential:
+        normal = _plane_normals(points, knn).unsqueeze(2)
+        offsets = offsets - (offsets * normal).sum(-1, keepdim=True) * normal
+    gaps = (offsets.pow(2).sum(-1) + 1e-12).sqrt()
     return torch.relu(radius - gaps).pow(2).mean((1, 2))
 
 
+def _plane_normals(points: Tensor, knn: Tensor) -> Tensor:
+    """(B, N, 3) unit normals (no gradient) of the least-squares planes of every point and its `knn` neighbours."""
+    with torch.no_grad():
+        group = torch.cat([points.unsqueeze(2), gather_points(points, knn)], 2)
+        centred = group - group.mean(2, keepdim=True)
+        covariance = centred.transpose(2, 3) @ centred
+        return torch.linalg.eigh(covariance.double())[1][..., 0].to(points.dtype)
+
+
 def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5, gamma: float = 0.0,
-             rho: float = 0.0) -> dict[str, Tensor]:
+             rho: float = 0.0, tangential: bool = False) -> dict[str, Tensor]:
     """L = 1000 (CD(P_s, GT) + lam CD(P_o, GT)) + alpha smoothL1(P_c', P_c) + beta 1000 L_shape
     [+ gamma 100 surface(P_o, GT) when gamma > 0, with lam > 0: `surface_distance`; a deviation from the paper]
-    [+ rho 1000 repulsion(P_o) on the kNN graph of P_g when rho > 0: `repulsion`; a deviation from the paper].
+    [+ rho 1000 repulsion(P_o) on the kNN graph of P_g when rho > 0: `repulsion`, within each point's plane when
+    `tangential`; a deviation from the paper].
 
     Returns the terms (batch means, unweighted except for their unit factors) and `total`.
     """
@@ -112,6 +128,6 @@ def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float 
         terms["surface"] = to_surface.mean() * SURFACE_SCALE
         total = total + gamma * terms["surface"]
     if rho > 0:
-        terms["repulsion"] = repulsion(output.completion, output.neighbours).mean() * CD_SCALE
+        terms["repulsion"] = repulsion(output.completion, output.neighbours, tangential=tangential).mean() * CD_SCALE
         total = total + rho * terms["repulsion"]
     return {"total": total, **terms}

@@ -51,6 +51,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--rho", type=float, default=0.0,
                         help="weight of the repulsion term: output points closer than 0.03 (normalised) to their graph "
                         "neighbours pushed apart, x1000 (default 0: the paper's loss)")
+    parser.add_argument("--tangential", action="store_true",
+                        help="measure the repulsion term's distances within each point's plane (spread along the "
+                        "surface, not off it)")
     parser.add_argument("--gt-points", type=int, default=None,
                         help="points sampled on each ground-truth surface (default: the model's N_o); denser targets "
                         "make the nearest ground-truth point a closer stand-in for the surface")
@@ -83,8 +86,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 #: Options a recipe may set (argparse destinations), and their command-line defaults.
 RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "epochs", "generation_epochs", "lam", "alpha", "beta",
-               "gamma", "rho", "gt_points", "batch_size", "lr", "lr_final", "num_control", "config", "init_from",
-               "init_skip", "sampling", "freeze")
+               "gamma", "rho", "tangential", "gt_points", "batch_size", "lr", "lr_final", "num_control", "config",
+               "init_from", "init_skip", "sampling", "freeze")
 RECIPE_DEFAULTS: dict[str, Any] = {}
 _PATH_KEYS = ("meshes", "init_from")
 SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
@@ -199,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
     val_data = cached_dataset(cache, "val", val_spec, args.workers)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
-                             alpha=args.alpha, beta=args.beta, gamma=args.gamma, rho=args.rho,
+                             alpha=args.alpha, beta=args.beta, gamma=args.gamma, rho=args.rho, tangential=args.tangential,
                              batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
                              device=device, freeze=tuple(args.freeze),
                              time_budget_s=args.time_budget)
