@@ -435,7 +435,7 @@ def test_tangential_repulsion_spreads_along_the_plane_and_not_off_it():
     rows += [[j for j in range(n) if j != i] for i in range(2, n)]   # the grid points: every other point
     knn = torch.tensor([rows])
     flat = repulsion(points, knn, tangential=True)
-    assert flat.item() == pytest.approx(2 * r ** 2 / (n * (n - 1)), rel=1e-3)   # the stacked pair: d = 0 within the plane
+    assert flat.item() == pytest.approx(2 * r ** 2 / (n * (n - 1)), rel=1e-3)   # the pair: d = 0 within the plane
     flat.sum().backward()
     assert points.grad[0, :2, 2].abs().max() < 1e-9   # nothing along the normal
     points.grad = None

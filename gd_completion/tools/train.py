@@ -202,7 +202,8 @@ def run(args: argparse.Namespace) -> int:
     val_data = cached_dataset(cache, "val", val_spec, args.workers)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
-                             alpha=args.alpha, beta=args.beta, gamma=args.gamma, rho=args.rho, tangential=args.tangential,
+                             alpha=args.alpha, beta=args.beta, gamma=args.gamma, rho=args.rho,
+                             tangential=args.tangential,
                              batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
                              device=device, freeze=tuple(args.freeze),
                              time_budget_s=args.time_budget)
