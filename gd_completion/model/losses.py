@@ -91,19 +91,20 @@ def repulsion(points: Tensor, knn: Tensor, radius: float = REPULSION_RADIUS, tan
     points along the surface and not off it."""
     offsets = points.unsqueeze(2) - gather_points(points, knn)
     if tangential:
-        normal = _plane_normals(points, knn).unsqueeze(2)
+        normal = _plane_normals(offsets).unsqueeze(2)
         offsets = offsets - (offsets * normal).sum(-1, keepdim=True) * normal
     gaps = (offsets.pow(2).sum(-1) + 1e-12).sqrt()
     return torch.relu(radius - gaps).pow(2).mean((1, 2))
 
 
-def _plane_normals(points: Tensor, knn: Tensor) -> Tensor:
-    """(B, N, 3) unit normals (no gradient) of the least-squares planes of every point and its `knn` neighbours."""
+def _plane_normals(offsets: Tensor) -> Tensor:
+    """(B, N, 3) unit normals (no gradient) of the least-squares planes of every point and its neighbours, from the
+    `offsets` (B, N, k, 3) of the point from each neighbour (the point itself at offset 0)."""
     with torch.no_grad():
-        group = torch.cat([points.unsqueeze(2), gather_points(points, knn)], 2)
+        group = torch.cat([torch.zeros_like(offsets[:, :, :1]), offsets], 2)
         centred = group - group.mean(2, keepdim=True)
         covariance = centred.transpose(2, 3) @ centred
-        return torch.linalg.eigh(covariance.double())[1][..., 0].to(points.dtype)
+        return torch.linalg.eigh(covariance.double())[1][..., 0].to(offsets.dtype)
 
 
 def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5, gamma: float = 0.0,
