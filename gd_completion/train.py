@@ -48,6 +48,12 @@ class TrainSettings:
     device: str = "cpu"
     time_budget_s: float | None = None
 
+    def __post_init__(self) -> None:
+        bad = [name for name in ("gamma", "rho") if not getattr(self, name) >= 0]   # NaN too
+        if bad:
+            raise TrainingError(f"the weight of {' and '.join(bad)} must be >= 0 (0 leaves its term out); got "
+                                + ", ".join(f"{name} {getattr(self, name)}" for name in bad))
+
     def lam_at(self, epoch: int) -> float:
         """Lambda of the 0-based `epoch`."""
         return 0.0 if epoch < self.generation_epochs else self.lam

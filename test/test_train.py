@@ -441,3 +441,16 @@ def test_tangential_repulsion_spreads_along_the_plane_and_not_off_it():
     points.grad = None
     repulsion(points, knn).sum().backward()
     assert points.grad[0, 0, 2] < 0 < points.grad[0, 1, 2]   # in 3D: descent moves the pair apart along z
+
+
+@pytest.mark.parametrize("weights", [{"rho": -1.0}, {"gamma": -0.5}, {"rho": float("nan")}])
+def test_a_negative_loss_weight_is_refused_before_any_training(weights, tmp_path, capsys):
+    """A negative (or NaN) weight of an optional loss term is a one-line error, not a term silently left out; the
+    command line refuses it before it makes a folder or generates any data."""
+    from gd_completion.cli import main
+
+    with pytest.raises(TrainingError, match="must be >= 0"):
+        TrainSettings(**weights)
+    option, value = next(iter(weights.items()))
+    assert main(["train", "--output", str(tmp_path / "run"), f"--{option}", str(value), "--samples", "4"]) == 2
+    assert "must be >= 0" in capsys.readouterr().err and not (tmp_path / "run").exists()

@@ -193,13 +193,8 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     if args.recipe is not None:
         apply_recipe(args, args.recipe)
-    options = sampling_options(args.sampling)   # a bad preset or configuration fails before any folder is made
+    options = sampling_options(args.sampling)   # a bad preset, configuration or setting fails before any folder
     config = load_config(args)
-    make_folder(args.output)  # an unwritable output fails before any work
-    cache = make_folder(args.cache or args.output)
-    spec, val_spec = dataset_specs(args, config, options)
-    train_data = cached_dataset(cache, "train", spec, args.workers)
-    val_data = cached_dataset(cache, "val", val_spec, args.workers)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
                              alpha=args.alpha, beta=args.beta, gamma=args.gamma, rho=args.rho,
@@ -207,6 +202,11 @@ def run(args: argparse.Namespace) -> int:
                              batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
                              device=device, freeze=tuple(args.freeze),
                              time_budget_s=args.time_budget)
+    make_folder(args.output)  # an unwritable output fails before any work
+    cache = make_folder(args.cache or args.output)
+    spec, val_spec = dataset_specs(args, config, options)
+    train_data = cached_dataset(cache, "train", spec, args.workers)
+    val_data = cached_dataset(cache, "val", val_spec, args.workers)
     with atomic_path(args.output / "settings.json") as tmp:
         tmp.write_text(json.dumps(
             {"config": config.to_dict(), "settings": dataclasses.asdict(settings), "samples": args.samples,
