@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from gd_completion.errors import EvaluationError
 from gd_completion.evaluation import baselines, metrics
 from gd_completion.model import GGDConfig, GGDNet, chamfer_l2, chamfer_l2_directional, save_checkpoint
 
@@ -436,3 +437,36 @@ def test_f_score_hand_computed():
     assert float(metrics.f_score(out, three)) == pytest.approx(0.4)
     batch = metrics.f_score(np.stack([out, out]), np.stack([gt, out]))
     np.testing.assert_allclose(batch.numpy(), [0.5, 1.0])
+
+
+def test_evaluate_command_box_noise_sigmas(tmp_path, shared_data):
+    """`--box-noise` sets the box-noise run's sigmas: with all four at zero the noisy boxes are the true ones, so
+    every method's noisy coverage is its clean one; a negative or NaN sigma is a one-line error before any output."""
+    import argparse
+
+    from gd_completion.tools import evaluate
+
+    torch.manual_seed(0)
+    model_path = save_checkpoint(tmp_path / "tiny.pt", GGDNet(TINY))
+    parser = argparse.ArgumentParser()
+    evaluate.register(parser.add_subparsers())
+    common = ["--model", str(model_path), "--synthetic-samples", "0", "--pandaset", str(shared_data / "pandaset-002"),
+              "--max-vehicles", "2", "--max-frames-per-vehicle", "2", "--threads", "1", "--no-fusion",
+              "--no-reuse", "--random-reference-points", "2000"]
+    out = tmp_path / "report"
+    args = parser.parse_args(["evaluate", "--output", str(out), "--box-noise", "0", "0", "0", "0", *common])
+    assert args.func(args) == 0
+    text = (out / "report.md").read_text()
+    table = text.split("### Box noise")[1].split("###")[0]
+    assert "sigma 0.0 m centre x/y, 0.0 m centre z, 0 % size (each dimension), 0.0 deg yaw" in table
+    cells = [[c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()
+             if line.startswith("| ") and not line.startswith(("| method", "| (oracle)"))]
+    assert len(cells) == 9
+    for row in cells:
+        assert row[1] == row[2] and row[3] in ("+0.0 %", "-0.0 %"), row   # equal up to rounding of the yaw
+    for bad in (["0.15", "-0.05", "0", "4"], ["nan", "0", "0", "0"]):
+        failed = tmp_path / f"failed_{bad[0]}"
+        args = parser.parse_args(["evaluate", "--output", str(failed), "--box-noise", *bad, *common])
+        with pytest.raises(EvaluationError, match="finite standard deviation >= 0"):
+            args.func(args)
+        assert not failed.exists()

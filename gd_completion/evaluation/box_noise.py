@@ -6,6 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from gd_completion.errors import EvaluationError
 from gd_completion.geometry import Box3D, denormalize, normalize
 
 BOX_NOISE_SEED = 2024
@@ -20,6 +21,12 @@ class BoxNoise:
     size: float = 0.05
     yaw_deg: float = 4.0
     seed: int = BOX_NOISE_SEED
+
+    def __post_init__(self) -> None:
+        for name in ("centre_xy", "centre_z", "size", "yaw_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise EvaluationError(f"box noise: {name} = {value} must be a finite standard deviation >= 0")
 
     def describe(self) -> str:
         return (f"sigma {self.centre_xy} m centre x/y, {self.centre_z} m centre z, {100 * self.size:.0f} % "

@@ -39,6 +39,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
     from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, read_checkpoint_metadata
 
     start = time.perf_counter()
+    noise = None if args.no_box_noise else BoxNoise(*(args.box_noise or ()), seed=args.box_noise_seed)  # checked first
     out = make_folder(args.output)  # an unwritable output fails before the evaluation, not after it
     synthetic_seed = EVAL_SEED if args.synthetic_seed is None else args.synthetic_seed
     if args.threads:
@@ -122,7 +123,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
                                    max_frames_per_vehicle=args.max_frames_per_vehicle or None,
                                    max_vehicles=args.max_vehicles, max_batch=args.max_batch,
                                    sensors=tuple(args.sensors), random_points=args.random_reference_points,
-                                   noise=None if args.no_box_noise else BoxNoise(seed=args.box_noise_seed))
+                                   noise=noise)
         emit(pandaset_section(result, num_control=model.config.num_control, num_input=model.config.num_input))
         write_renders(out, "pandaset_vehicles.png", result.examples)
         write_renders(out, "pandaset_worst.png", result.worst)
@@ -199,6 +200,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--random-reference-points", type=int, default=20_000,
                         help="points of the random PandaSet reference (default 20000)")
     parser.add_argument("--no-box-noise", action="store_true", help="skip the PandaSet box-noise run")
+    parser.add_argument("--box-noise", type=float, nargs=4, default=None,
+                        metavar=("CENTRE_XY", "CENTRE_Z", "SIZE", "YAW_DEG"),
+                        help="standard deviations of the box-noise run: centre x/y and z (m), size (a fraction of "
+                        "each dimension), yaw (deg); default 0.15 0.05 0.05 4. Set your detector's errors, or one "
+                        "kind alone (0.15 0 0 0: centre errors only)")
     parser.add_argument("--box-noise-seed", type=int, default=2024, help="seed of the box noise (default 2024)")
     parser.add_argument("--max-vehicles", type=int, default=None, help="first N stationary vehicles only")
     parser.add_argument("--no-fusion", action="store_true", help="skip the PandaSet track-fusion part")
