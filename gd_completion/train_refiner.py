@@ -1,7 +1,8 @@
 """Training of a GGDNet's box refiner (`model.box_refiner`) on pairs with box noise; the rest stays frozen.
 
 The data are the synthetic training pairs (`synth.dataset`): each knows the error of the box it was cropped
-and normalised with, so the true box in that box's frame (`box_refiner.frame_targets`) is the target. Every
+and normalised with, so the true box in that box's frame (`box_refiner.frame_targets`) is the target; a labelled
+real drive can be added (`drive_frames.drive_frames`: its moving vehicles cropped with noisy boxes). Every
 epoch writes a whole GGDNet checkpoint (`box_refinement`: the completion network's weights and the refiner's):
 `last.pt` (resumable) and `best.pt` (lowest validation loss).
 """
@@ -13,7 +14,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -26,6 +27,9 @@ from .model.config import GGDConfig
 from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
 from .train import PROGRESS_STEPS, TrainResult, _as_tensor, _backward, _no_finite_step_error, _skip_step
+
+if TYPE_CHECKING:
+    from .drive_frames import DriveFrames
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +88,17 @@ class FrameData:
         if not (np.isfinite(shape).all() and np.isfinite(target).all()):
             raise DataFormatError("box refiner data: non-finite or non-positive box sizes or box errors")
         return cls(_as_tensor(partial, "box refiner data partial"), torch.from_numpy(shape), torch.from_numpy(target))
+
+    @classmethod
+    def from_drive(cls, frames: DriveFrames) -> FrameData:
+        """From a labelled drive's refiner samples (`drive_frames.drive_frames`)."""
+        return cls(_as_tensor(frames.partial, "drive refiner data partial"), box_shape(frames.size),
+                   torch.from_numpy(np.asarray(frames.target, np.float32)))
+
+    @classmethod
+    def concat(cls, parts: Sequence[FrameData]) -> FrameData:
+        """All samples of `parts`, in order."""
+        return cls(*(torch.cat([getattr(p, name) for p in parts]) for name in ("partial", "shape", "target")))
 
     def __len__(self) -> int:
         return self.partial.shape[0]

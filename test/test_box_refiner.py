@@ -277,11 +277,13 @@ REFINER_RUNS = [(V22_WEIGHTS, "box_refiner_small.json"),
                 (REPO / "docs/evaluation/ablation/ggd_v21_refiner_large.pt", "box_refiner.json")]
 
 
-@pytest.mark.parametrize("recipe_name", [recipe for _, recipe in REFINER_RUNS])
-def test_the_repository_refiner_recipes_name_what_exists(recipe_name):
+@pytest.mark.parametrize("recipe_name", sorted(p.name for p in (REPO / "recipes").glob("box_refiner*.json")))
+def test_the_repository_refiner_recipes_name_what_exists(recipe_name, shared_data):
     recipe = read_recipe(REPO / "recipes" / recipe_name)
     assert (REPO / recipe["base"]).is_file()
     assert all((REPO / r).is_file() for r in recipe["data"])
+    if "drive" in recipe:   # a labelled drive of the shared data, beside the repository
+        assert (REPO / recipe["drive"]["pandaset"]).resolve() == (shared_data / "pandaset-002").resolve()
 
 
 @pytest.mark.parametrize("weights, recipe_name", REFINER_RUNS)

@@ -11,12 +11,15 @@ from gd_completion.atomic import atomic_path, make_folder
 from gd_completion.errors import DataFormatError
 
 if TYPE_CHECKING:
-    from gd_completion.train_refiner import RefinerSettings
+    from gd_completion.train_refiner import FrameData, RefinerSettings
 
 # Keys of a refiner recipe (recipes/box_refiner*.json) besides "name" and "notes": the base checkpoint, the
 # training recipes whose data sets it uses, and fields of train_refiner.RefinerSettings.
 SETTING_KEYS = ("epochs", "batch_size", "lr", "seed", "norm_train_epochs", "widths", "hidden")
-RECIPE_KEYS = ("base", "data", *SETTING_KEYS)
+RECIPE_KEYS = ("base", "data", "drive", *SETTING_KEYS)
+# Keys of a recipe's optional "drive": a labelled drive (PandaSet layout) whose moving vehicles are added
+# (`drive_frames.drive_frames`), and the share of its vehicles held out for validation.
+DRIVE_KEYS = ("pandaset", "draws", "sigma_scale", "seed", "val_share")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -25,7 +28,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--recipe", type=Path, required=True,
                         help="JSON recipe: base (a box-conditioned checkpoint), data (training recipes whose data "
                         "sets, made with box noise, are used: training and validation sets), epochs, batch_size, "
-                        "lr, seed, norm_train_epochs, widths and hidden (the refiner's layer widths)")
+                        "lr, seed, norm_train_epochs, widths and hidden (the refiner's layer widths); optional drive: "
+                        "{pandaset: a labelled drive whose moving vehicles are added with noisy boxes, draws, "
+                        "sigma_scale, seed, val_share (vehicles held out for validation, default 0.2)}")
     parser.add_argument("--output", type=Path, default=None, help="run folder (default runs/<recipe name>)")
     parser.add_argument("--cache", type=Path, default=Path("runs/cache"),
                         help="folder of the data sets (`gd-completion train --cache`; missing ones are generated)")
@@ -45,7 +50,30 @@ def read_recipe(path: Path) -> dict[str, Any]:
         raise DataFormatError(f"{path}: missing recipe keys {missing}")
     if not isinstance(recipe["data"], list) or not recipe["data"]:
         raise DataFormatError(f"{path}: data must be a non-empty list of training recipes")
+    drive = recipe.get("drive")
+    if drive is not None:
+        if not isinstance(drive, dict) or "pandaset" not in drive or set(drive) - set(DRIVE_KEYS):
+            raise DataFormatError(f"{path}: drive must be an object with pandaset and optionally "
+                                  f"{list(DRIVE_KEYS[1:])}")
+        share = drive.get("val_share", 0.2)
+        if not (isinstance(share, (int, float)) and 0.0 < share < 1.0):
+            raise DataFormatError(f"{path}: drive val_share={share} must be in (0, 1)")
     return recipe
+
+
+def drive_data(drive: dict[str, Any], path: Path) -> tuple[FrameData, FrameData]:
+    """(training, validation) refiner data of a recipe's labelled drive; DataFormatError naming the recipe."""
+    from gd_completion.drive_frames import drive_frames
+    from gd_completion.train_refiner import FrameData
+
+    options = {k: drive[k] for k in ("draws", "seed") if k in drive}
+    if "sigma_scale" in drive:
+        options["sigma_scale"] = tuple(drive["sigma_scale"])
+    try:
+        train, val = drive_frames(drive["pandaset"], **options).split(drive.get("val_share", 0.2))
+    except (TypeError, ValueError) as exc:
+        raise DataFormatError(f"{path}: drive: {exc}") from exc
+    return FrameData.from_drive(train), FrameData.from_drive(val)
 
 
 def recipe_settings(recipe: dict[str, Any], path: Path, device: str = "cpu") -> RefinerSettings:
@@ -72,9 +100,12 @@ def run(args: argparse.Namespace) -> int:
     output = make_folder(args.output or Path("runs") / recipe.get("name", args.recipe.stem))
     cache = make_folder(args.cache)
     sets = [recipe_datasets(Path(r), cache, args.workers) for r in recipe["data"]]
+    train, val = FrameData.from_datasets([t for t, _ in sets]), FrameData.from_datasets([v for _, v in sets])
+    if recipe.get("drive") is not None:
+        drive_train, drive_val = drive_data(recipe["drive"], args.recipe)
+        train, val = FrameData.concat([drive_train, train]), FrameData.concat([drive_val, val])
     with atomic_path(output / "settings.json") as tmp:
         tmp.write_text(json.dumps({"recipe": str(args.recipe), **recipe}, indent=2))
-    result = train_refiner(Path(recipe["base"]), FrameData.from_datasets([t for t, _ in sets]),
-                           FrameData.from_datasets([v for _, v in sets]), output, settings, resume=args.resume)
+    result = train_refiner(Path(recipe["base"]), train, val, output, settings, resume=args.resume)
     print(f"train-refiner: {result.epochs_done} epochs, best checkpoint {result.best_path}, last {result.last_path}")
     return 0

@@ -1,0 +1,86 @@
+"""Box-refiner samples from a labelled real drive: the true frame against the synthetic pairs' convention,
+PandaSet-002's moving vehicles only (the evaluation's parked ones never), whole vehicles held out, recipes checked
+before any data."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gd_completion.drive_frames import DriveFrames, drive_frames, moving_vehicles, true_frame
+from gd_completion.errors import DataFormatError
+from gd_completion.evaluation.pandaset_eval import PandaSetSequence, stationary_vehicles
+from gd_completion.geometry import Box3D, normalize
+from gd_completion.model.box_refiner import BoxFrame, frame_targets, to_frame
+from gd_completion.tools.train_refiner import read_recipe
+from gd_completion.train_refiner import FrameData
+
+
+def test_true_frame_is_the_synthetic_pairs_target_and_maps_the_noisy_crop_onto_the_true_box():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        centre, yaw = rng.uniform(-20, 20, 3), rng.uniform(-math.pi, math.pi)
+        true_size = rng.uniform([3.5, 1.6, 1.3], [6.0, 2.2, 2.5])
+        noise = np.concatenate([rng.normal(0, 0.3, 3), np.exp(rng.normal(0, 0.08, 3)), rng.normal(0, 0.1, 1)])
+        true = Box3D(tuple(centre), tuple(true_size), yaw, "car", 1)
+        used = Box3D(tuple(centre + noise[:3]), tuple(true_size * noise[3:6]), yaw + noise[6], "car", 1)
+        target = true_frame(true, used)
+        expected = frame_targets(noise[None], np.array([yaw]), (true_size * noise[3:6])[None], true_size[None])[0]
+        np.testing.assert_allclose(target, expected, atol=1e-5)
+        points = centre + rng.uniform(-1.5, 1.5, (200, 3))
+        placed = to_frame(torch.from_numpy(normalize(points, used))[None],
+                          BoxFrame.from_vector(torch.from_numpy(target)[None]))[0].numpy()
+        np.testing.assert_allclose(placed, normalize(points, true), atol=1e-4)
+
+
+@pytest.fixture(scope="module")
+def drive(shared_data) -> DriveFrames:
+    return drive_frames(shared_data / "pandaset-002", draws=2, sigma_scale=(1.0, 1.0), seed=11)
+
+
+def test_a_drive_gives_its_moving_vehicles_once_exact_and_once_per_draw(shared_data, drive):
+    sequence = PandaSetSequence(shared_data / "pandaset-002")
+    parked = {sequence.track_ids[u] for u in stationary_vehicles(sequence, (0, 1))}
+    moving = {sequence.track_ids[u] for u in moving_vehicles(sequence)}
+    assert moving and not moving & parked
+    assert set(drive.track.tolist()) <= moving and not set(drive.track.tolist()) & parked
+    exact = (drive.target == 0).all(1)
+    assert drive.partial.shape[1:] == (512, 3) and np.isfinite(drive.partial).all()
+    # every noisy crop is of an exactly cropped one: at most twice as many, and a box error of the stated spread
+    assert 0 < (~exact).sum() <= 2 * exact.sum()
+    offset = drive.target[~exact, :2] * drive.size[~exact, :1]          # metres, in the noisy box's axes
+    assert np.sqrt((offset ** 2).mean()) == pytest.approx(0.15, rel=0.15)
+    assert np.degrees(np.sqrt((drive.target[~exact, 3] ** 2).mean())) == pytest.approx(4.0, rel=0.15)
+    train, val = drive.split(0.2, seed=0)
+    assert len(train) + len(val) == len(drive) and not set(train.track.tolist()) & set(val.track.tolist())
+    assert len(np.unique(val.track)) == round(0.2 * len(np.unique(drive.track)))
+    data = FrameData.concat([FrameData.from_drive(train), FrameData.from_drive(val)])
+    assert len(data) == len(drive) and torch.equal(data.target[:len(train)], torch.from_numpy(train.target))
+
+
+def test_drive_settings_are_checked(shared_data, drive):
+    with pytest.raises(ValueError, match="draws"):
+        drive_frames(shared_data / "pandaset-002", draws=-1)
+    with pytest.raises(ValueError, match="sigma_scale"):
+        drive_frames(shared_data / "pandaset-002", sigma_scale=(1.4, 0.8))
+    with pytest.raises(ValueError, match="val_share"):
+        drive.split(1.0)
+
+
+@pytest.mark.parametrize("drive_entry, message", [({"draws": 2}, "pandaset"), ({"pandaset": "p", "bogus": 1}, "drive"),
+                                                 ({"pandaset": "p", "val_share": 1.5}, "val_share")])
+def test_a_refiner_recipe_drive_is_checked_before_any_data(tmp_path, drive_entry, message):
+    recipe = tmp_path / "recipe.json"
+    recipe.write_text(json.dumps({"base": "x.pt", "data": ["y.json"], "drive": drive_entry}))
+    with pytest.raises(DataFormatError, match=message):
+        read_recipe(recipe)
+
+
+def test_a_bad_drive_setting_is_an_error_naming_the_recipe(tmp_path, shared_data):
+    from gd_completion.tools.train_refiner import drive_data
+
+    with pytest.raises(DataFormatError, match="recipe.json: drive: draws=-1"):
+        drive_data({"pandaset": str(shared_data / "pandaset-002"), "draws": -1}, tmp_path / "recipe.json")
