@@ -9,12 +9,14 @@ refiner adapted on a drive is still scored on vehicles it never saw (of the same
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from gd_completion.datasets.pandaset import PandaSetSequence
 from gd_completion.errors import DataFormatError
 from gd_completion.evaluation.box_noise import BoxNoise
 from gd_completion.evaluation.pandaset_eval import (
@@ -27,7 +29,47 @@ from gd_completion.evaluation.pandaset_eval import (
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.preprocess import Preprocessing, network_input
 
-from .datasets.pandaset import PandaSetSequence
+
+@dataclass(frozen=True)
+class DriveSettings:
+    """A labelled drive for refiner training (a refiner recipe's `drive`): the folder (PandaSet layout), noisy crops
+    per annotated crop, the scale of the evaluation's box-noise sigmas from the first draw to the last, the first
+    draw's seed (draw k: seed + k) and the share of its vehicles held out for validation."""
+
+    pandaset: str
+    draws: int = 4
+    sigma_scale: tuple[float, float] = (0.8, 1.4)
+    seed: int = 7001
+    val_share: float = 0.2
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.pandaset, str) or not (Path(self.pandaset) / "lidar").is_dir():
+            raise ValueError(f"pandaset={self.pandaset!r} must name a drive folder holding lidar/")
+        if isinstance(self.draws, bool) or not isinstance(self.draws, int) or self.draws < 0:
+            raise ValueError(f"draws={self.draws!r} must be an integer >= 0")
+        scale = self.sigma_scale
+        if (not isinstance(scale, (list, tuple)) or len(scale) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in scale)
+                or not 0.0 <= scale[0] <= scale[1]):
+            raise ValueError(f"sigma_scale={scale!r} must be two finite factors 0 <= low <= high")
+        object.__setattr__(self, "sigma_scale", (float(scale[0]), float(scale[1])))
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ValueError(f"seed={self.seed!r} must be an integer")
+        if (isinstance(self.val_share, bool) or not isinstance(self.val_share, (int, float))
+                or not 0.0 < self.val_share < 1.0):
+            raise ValueError(f"val_share={self.val_share!r} must be in (0, 1)")
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> DriveSettings:
+        """From a recipe's `drive` object; ValueError naming unknown or missing keys and bad values."""
+        if not isinstance(values, dict):
+            raise ValueError("drive must be an object")
+        unknown = sorted(set(values) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise ValueError(f"unknown drive keys {unknown}")
+        if "pandaset" not in values:
+            raise ValueError("drive needs pandaset (a labelled drive folder)")
+        return cls(**values)
 
 
 @dataclass(frozen=True)
@@ -84,31 +126,29 @@ def moving_vehicles(sequence: PandaSetSequence, sensors: Sequence[int] = SENSORS
     return found
 
 
-def drive_frames(root: str | Path, *, draws: int = 4, sigma_scale: tuple[float, float] = (0.8, 1.4),
-                 seed: int = 7001, n_input: int = 512, preprocessing: Preprocessing | None = None,
-                 sensors: Sequence[int] = SENSORS, noise: BoxNoise | None = None) -> DriveFrames:
-    """Refiner samples of the drive at `root`'s moving vehicles, every frame and sensor: each crop with at least
-    MIN_INPUT_POINTS points once with its annotated box (target: the identity) and `draws` times with a noisy box
-    (`evaluation.box_noise.noisy_box`, sigmas of `noise` (default the evaluation's) scaled from `sigma_scale[0]` to
-    `sigma_scale[1]` over the draws, draw k seeded `seed + k`), cropped through the preprocessing contract."""
-    if draws < 0:
-        raise ValueError(f"draws={draws} must be >= 0")
-    low, high = (float(s) for s in sigma_scale)
-    if not (math.isfinite(low) and math.isfinite(high) and 0.0 <= low <= high):
-        raise ValueError(f"sigma_scale={sigma_scale} must be two finite factors 0 <= low <= high")
+def drive_frames(drive: DriveSettings, *, n_input: int = 512, preprocessing: Preprocessing | None = None,
+                 sensors: Sequence[int] = SENSORS, noise: BoxNoise | None = None,
+                 frames: Iterable[int] | None = None) -> DriveFrames:
+    """Refiner samples of the `drive`'s moving vehicles, every frame (or `frames`) and sensor: each crop with at least
+    MIN_INPUT_POINTS points once with its annotated box (target: the identity) and `drive.draws` times with a noisy
+    box (`evaluation.box_noise.noisy_box`, the sigmas of `noise` (default the evaluation's) scaled from
+    `drive.sigma_scale[0]` to `[1]` over the draws, draw k seeded `drive.seed + k`), cropped through `preprocessing`
+    (the contract of the checkpoint whose refiner trains) and brought to `n_input` points."""
+    low, high = drive.sigma_scale
     base = noise or BoxNoise()
-    sequence = PandaSetSequence(root)
+    sequence = PandaSetSequence(drive.pandaset)
     vehicles = moving_vehicles(sequence, sensors)
+    frames = None if frames is None else list(frames)
     if not vehicles:
-        raise DataFormatError(f"{root}: no moving vehicle tracks")
+        raise DataFormatError(f"{drive.pandaset}: no moving vehicle tracks")
     prep = replace(preprocessing or Preprocessing(), min_points=1)
     parts: list[tuple[np.ndarray, tuple[float, ...], np.ndarray, int]] = []
-    factors = list(np.linspace(low, high, draws)) if draws > 1 else [low] * draws
+    factors = list(np.linspace(low, high, drive.draws)) if drive.draws > 1 else [low] * drive.draws
     for k, factor in enumerate(factors or [None]):   # no draw: one pass for the annotated boxes
         shaken = None if factor is None else replace(
             base, centre_xy=base.centre_xy * factor, centre_z=base.centre_z * factor, size=base.size * factor,
-            yaw_deg=base.yaw_deg * factor, seed=seed + k)
-        for track in collect_tracks(sequence, vehicles, prep, sensors=sensors, noise=shaken).values():
+            yaw_deg=base.yaw_deg * factor, seed=drive.seed + k)
+        for track in collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=shaken).values():
             if k == 0:
                 parts += [(network_input(points, n_input), box.size, np.zeros(7, np.float32), track.instance_id)
                           for points, box in zip(track.points, track.boxes) if len(points) >= MIN_INPUT_POINTS]
@@ -117,7 +157,7 @@ def drive_frames(root: str | Path, *, draws: int = 4, sigma_scale: tuple[float, 
                       for crop, box in zip(track.noisy, track.boxes)
                       if crop is not None and len(crop.normalized) >= MIN_INPUT_POINTS]
     if not parts:
-        raise DataFormatError(f"{root}: no moving vehicle with {MIN_INPUT_POINTS} points in its box")
+        raise DataFormatError(f"{drive.pandaset}: no moving vehicle with {MIN_INPUT_POINTS} points in its box")
     partial, size, target, track_id = zip(*parts)
     return DriveFrames(np.stack(partial).astype(np.float32), np.array(size, np.float32), np.stack(target),
                        np.array(track_id, np.int64))

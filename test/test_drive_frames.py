@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from gd_completion.drive_frames import DriveFrames, drive_frames, moving_vehicles, true_frame
+from gd_completion.drive_frames import DriveFrames, DriveSettings, drive_frames, moving_vehicles, true_frame
 from gd_completion.errors import DataFormatError
 from gd_completion.evaluation.pandaset_eval import PandaSetSequence, stationary_vehicles
 from gd_completion.geometry import Box3D, normalize
@@ -34,11 +34,18 @@ def test_true_frame_is_the_synthetic_pairs_target_and_maps_the_noisy_crop_onto_t
         placed = to_frame(torch.from_numpy(normalize(points, used))[None],
                           BoxFrame.from_vector(torch.from_numpy(target)[None]))[0].numpy()
         np.testing.assert_allclose(placed, normalize(points, true), atol=1e-4)
+    # headings either side of +-pi: the offset is the short way round
+    across = true_frame(Box3D((0.0, 0.0, 0.0), (4.0, 2.0, 1.5), 3.1), Box3D((0.0, 0.0, 0.0), (4.0, 2.0, 1.5), -3.1))
+    assert across[3] == pytest.approx(6.2 - 2 * math.pi, abs=1e-6)
+
+
+FRAMES = range(0, 30)   # a part of the drive keeps the test light
 
 
 @pytest.fixture(scope="module")
 def drive(shared_data) -> DriveFrames:
-    return drive_frames(shared_data / "pandaset-002", draws=2, sigma_scale=(1.0, 1.0), seed=11)
+    settings = DriveSettings(str(shared_data / "pandaset-002"), draws=2, sigma_scale=(1.0, 1.0), seed=11)
+    return drive_frames(settings, frames=FRAMES)
 
 
 def test_a_drive_gives_its_moving_vehicles_once_exact_and_once_per_draw(shared_data, drive):
@@ -49,8 +56,9 @@ def test_a_drive_gives_its_moving_vehicles_once_exact_and_once_per_draw(shared_d
     assert set(drive.track.tolist()) <= moving and not set(drive.track.tolist()) & parked
     exact = (drive.target == 0).all(1)
     assert drive.partial.shape[1:] == (512, 3) and np.isfinite(drive.partial).all()
-    # every noisy crop is of an exactly cropped one: at most twice as many, and a box error of the stated spread
-    assert 0 < (~exact).sum() <= 2 * exact.sum()
+    # two draws of every exact crop (a few fall below the point minimum): neither one draw nor exact crops twice
+    assert 1.5 * exact.sum() < (~exact).sum() <= 2 * exact.sum()
+    assert len(np.unique(drive.target[~exact], axis=0)) == (~exact).sum()   # the draws differ (their own seeds)
     offset = drive.target[~exact, :2] * drive.size[~exact, :1]          # metres, in the noisy box's axes
     assert np.sqrt((offset ** 2).mean()) == pytest.approx(0.15, rel=0.15)
     assert np.degrees(np.sqrt((drive.target[~exact, 3] ** 2).mean())) == pytest.approx(4.0, rel=0.15)
@@ -61,26 +69,34 @@ def test_a_drive_gives_its_moving_vehicles_once_exact_and_once_per_draw(shared_d
     assert len(data) == len(drive) and torch.equal(data.target[:len(train)], torch.from_numpy(train.target))
 
 
-def test_drive_settings_are_checked(shared_data, drive):
-    with pytest.raises(ValueError, match="draws"):
-        drive_frames(shared_data / "pandaset-002", draws=-1)
-    with pytest.raises(ValueError, match="sigma_scale"):
-        drive_frames(shared_data / "pandaset-002", sigma_scale=(1.4, 0.8))
+def test_a_split_holds_out_whole_vehicles():
+    track = np.repeat([4, 7, 9], [5, 3, 2])
+    frames = DriveFrames(np.zeros((10, 8, 3), np.float32), np.ones((10, 3), np.float32), np.zeros((10, 7), np.float32),
+                         track)
+    train, val = frames.split(0.34, seed=1)
+    assert len(np.unique(val.track)) == 1 and set(train.track.tolist()).isdisjoint(val.track.tolist())
+    assert len(train) + len(val) == 10
     with pytest.raises(ValueError, match="val_share"):
-        drive.split(1.0)
+        frames.split(1.0)
+    with pytest.raises(DataFormatError, match="too few"):
+        frames.subset(track == 4).split(0.5)
 
 
-@pytest.mark.parametrize("drive_entry, message", [({"draws": 2}, "pandaset"), ({"pandaset": "p", "bogus": 1}, "drive"),
-                                                 ({"pandaset": "p", "val_share": 1.5}, "val_share")])
-def test_a_refiner_recipe_drive_is_checked_before_any_data(tmp_path, drive_entry, message):
+@pytest.mark.parametrize("drive_entry, message", [
+    ({"draws": 2}, "needs pandaset"), ({"pandaset": "P", "bogus": 1}, r"unknown drive keys \['bogus'\]"),
+    ({"pandaset": "P", "val_share": 1.5}, "val_share"), ({"pandaset": "P", "draws": -1}, "draws"),
+    ({"pandaset": "P", "draws": 2.5}, "draws"), ({"pandaset": "P", "draws": True}, "draws"),
+    ({"pandaset": "P", "sigma_scale": [1.4, 0.8]}, "sigma_scale"),
+    ({"pandaset": "P", "sigma_scale": [1]}, "sigma_scale"),
+    ({"pandaset": "P", "seed": 1.5}, "seed"), ({"pandaset": "absent"}, "lidar/"), ([], "object")])
+def test_a_refiner_recipe_drive_is_checked_before_any_data(tmp_path, shared_data, drive_entry, message):
+    """Every `drive` value is checked when the recipe is read, before any folder or data is made."""
+    if isinstance(drive_entry, dict) and drive_entry.get("pandaset") == "P":
+        drive_entry = {**drive_entry, "pandaset": str(shared_data / "pandaset-002")}
     recipe = tmp_path / "recipe.json"
     recipe.write_text(json.dumps({"base": "x.pt", "data": ["y.json"], "drive": drive_entry}))
-    with pytest.raises(DataFormatError, match=message):
+    with pytest.raises(DataFormatError, match=f"recipe.json: drive: .*{message}"):
         read_recipe(recipe)
-
-
-def test_a_bad_drive_setting_is_an_error_naming_the_recipe(tmp_path, shared_data):
-    from gd_completion.tools.train_refiner import drive_data
-
-    with pytest.raises(DataFormatError, match="recipe.json: drive: draws=-1"):
-        drive_data({"pandaset": str(shared_data / "pandaset-002"), "draws": -1}, tmp_path / "recipe.json")
+    good = {"base": "x.pt", "data": ["y.json"], "drive": {"pandaset": str(shared_data / "pandaset-002"), "draws": 2}}
+    recipe.write_text(json.dumps(good))
+    assert read_recipe(recipe)["drive"] == DriveSettings(str(shared_data / "pandaset-002"), draws=2)

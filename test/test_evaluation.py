@@ -470,3 +470,5 @@ def test_evaluate_command_box_noise_sigmas(tmp_path, shared_data):
         with pytest.raises(EvaluationError, match="finite standard deviation >= 0"):
             args.func(args)
         assert not failed.exists()
+    with pytest.raises(SystemExit):   # sigmas for a run that is skipped: refused, not ignored
+        parser.parse_args(["evaluate", "--box-noise", "0.1", "0", "0", "0", "--no-box-noise"])

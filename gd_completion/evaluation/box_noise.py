@@ -29,7 +29,7 @@ class BoxNoise:
                 raise EvaluationError(f"box noise: {name} = {value} must be a finite standard deviation >= 0")
 
     def describe(self) -> str:
-        return (f"sigma {self.centre_xy} m centre x/y, {self.centre_z} m centre z, {100 * self.size:.0f} % "
+        return (f"sigma {self.centre_xy} m centre x/y, {self.centre_z} m centre z, {100 * self.size:g} % "
                 f"size (each dimension), {self.yaw_deg} deg yaw; seed {self.seed}")
 
 

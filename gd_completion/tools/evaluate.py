@@ -199,8 +199,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="PandaSet sensors (0 Pandar64, 1 PandarGT; default both)")
     parser.add_argument("--random-reference-points", type=int, default=20_000,
                         help="points of the random PandaSet reference (default 20000)")
-    parser.add_argument("--no-box-noise", action="store_true", help="skip the PandaSet box-noise run")
-    parser.add_argument("--box-noise", type=float, nargs=4, default=None,
+    noise = parser.add_mutually_exclusive_group()
+    noise.add_argument("--no-box-noise", action="store_true", help="skip the PandaSet box-noise run")
+    noise.add_argument("--box-noise", type=float, nargs=4, default=None,
                         metavar=("CENTRE_XY", "CENTRE_Z", "SIZE", "YAW_DEG"),
                         help="standard deviations of the box-noise run: centre x/y and z (m), size (a fraction of "
                         "each dimension), yaw (deg); default 0.15 0.05 0.05 4. Set your detector's errors, or one "

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -11,15 +12,13 @@ from gd_completion.atomic import atomic_path, make_folder
 from gd_completion.errors import DataFormatError
 
 if TYPE_CHECKING:
+    from gd_completion.drive_frames import DriveSettings
     from gd_completion.train_refiner import FrameData, RefinerSettings
 
 # Keys of a refiner recipe (recipes/box_refiner*.json) besides "name" and "notes": the base checkpoint, the
 # training recipes whose data sets it uses, and fields of train_refiner.RefinerSettings.
 SETTING_KEYS = ("epochs", "batch_size", "lr", "seed", "norm_train_epochs", "widths", "hidden")
-RECIPE_KEYS = ("base", "data", "drive", *SETTING_KEYS)
-# Keys of a recipe's optional "drive": a labelled drive (PandaSet layout) whose moving vehicles are added
-# (`drive_frames.drive_frames`), and the share of its vehicles held out for validation.
-DRIVE_KEYS = ("pandaset", "draws", "sigma_scale", "seed", "val_share")
+RECIPE_KEYS = ("base", "data", "drive", *SETTING_KEYS)   # drive: drive_frames.DriveSettings' fields
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -29,8 +28,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="JSON recipe: base (a box-conditioned checkpoint), data (training recipes whose data "
                         "sets, made with box noise, are used: training and validation sets), epochs, batch_size, "
                         "lr, seed, norm_train_epochs, widths and hidden (the refiner's layer widths); optional drive: "
-                        "{pandaset: a labelled drive whose moving vehicles are added with noisy boxes, draws, "
-                        "sigma_scale, seed, val_share (vehicles held out for validation, default 0.2)}")
+                        "{pandaset: a labelled drive (PandaSet layout, sensors 0 and 1) whose moving vehicles are "
+                        "added, each crop with its box and with draws (default 4) noisy boxes, sigma_scale (the "
+                        "evaluation's sigmas times 0.8 to 1.4), seed (7001), val_share (vehicles held out for "
+                        "validation, 0.2)}")
     parser.add_argument("--output", type=Path, default=None, help="run folder (default runs/<recipe name>)")
     parser.add_argument("--cache", type=Path, default=Path("runs/cache"),
                         help="folder of the data sets (`gd-completion train --cache`; missing ones are generated)")
@@ -50,29 +51,31 @@ def read_recipe(path: Path) -> dict[str, Any]:
         raise DataFormatError(f"{path}: missing recipe keys {missing}")
     if not isinstance(recipe["data"], list) or not recipe["data"]:
         raise DataFormatError(f"{path}: data must be a non-empty list of training recipes")
-    drive = recipe.get("drive")
-    if drive is not None:
-        if not isinstance(drive, dict) or "pandaset" not in drive or set(drive) - set(DRIVE_KEYS):
-            raise DataFormatError(f"{path}: drive must be an object with pandaset and optionally "
-                                  f"{list(DRIVE_KEYS[1:])}")
-        share = drive.get("val_share", 0.2)
-        if not (isinstance(share, (int, float)) and 0.0 < share < 1.0):
-            raise DataFormatError(f"{path}: drive val_share={share} must be in (0, 1)")
+    if "drive" in recipe:
+        recipe["drive"] = drive_settings(recipe["drive"], path)
     return recipe
 
 
-def drive_data(drive: dict[str, Any], path: Path) -> tuple[FrameData, FrameData]:
-    """(training, validation) refiner data of a recipe's labelled drive; DataFormatError naming the recipe."""
-    from gd_completion.drive_frames import drive_frames
-    from gd_completion.train_refiner import FrameData
+def drive_settings(values: Any, path: Path) -> DriveSettings:
+    """A recipe's `drive`, checked (before any data is made); DataFormatError naming the recipe otherwise."""
+    from gd_completion.drive_frames import DriveSettings
 
-    options = {k: drive[k] for k in ("draws", "seed") if k in drive}
-    if "sigma_scale" in drive:
-        options["sigma_scale"] = tuple(drive["sigma_scale"])
     try:
-        train, val = drive_frames(drive["pandaset"], **options).split(drive.get("val_share", 0.2))
+        return DriveSettings.from_dict(values)
     except (TypeError, ValueError) as exc:
         raise DataFormatError(f"{path}: drive: {exc}") from exc
+
+
+def drive_data(drive: DriveSettings, n_input: int, base: Path) -> tuple[FrameData, FrameData]:
+    """(training, validation) refiner data of a recipe's labelled drive, cropped through the `base` checkpoint's
+    preprocessing contract and brought to `n_input` points (the synthetic sets' input size)."""
+    from gd_completion.drive_frames import drive_frames
+    from gd_completion.model.checkpoint import read_checkpoint
+    from gd_completion.preprocess import Preprocessing
+    from gd_completion.train_refiner import FrameData
+
+    preprocessing = Preprocessing.from_dict(read_checkpoint(base).get("preprocessing"))
+    train, val = drive_frames(drive, n_input=n_input, preprocessing=preprocessing).split(drive.val_share)
     return FrameData.from_drive(train), FrameData.from_drive(val)
 
 
@@ -101,11 +104,11 @@ def run(args: argparse.Namespace) -> int:
     cache = make_folder(args.cache)
     sets = [recipe_datasets(Path(r), cache, args.workers) for r in recipe["data"]]
     train, val = FrameData.from_datasets([t for t, _ in sets]), FrameData.from_datasets([v for _, v in sets])
-    if recipe.get("drive") is not None:
-        drive_train, drive_val = drive_data(recipe["drive"], args.recipe)
+    if "drive" in recipe:
+        drive_train, drive_val = drive_data(recipe["drive"], train.partial.shape[1], Path(recipe["base"]))
         train, val = FrameData.concat([drive_train, train]), FrameData.concat([drive_val, val])
     with atomic_path(output / "settings.json") as tmp:
-        tmp.write_text(json.dumps({"recipe": str(args.recipe), **recipe}, indent=2))
+        tmp.write_text(json.dumps({"recipe": str(args.recipe), **recipe}, indent=2, default=asdict))
     result = train_refiner(Path(recipe["base"]), train, val, output, settings, resume=args.resume)
     print(f"train-refiner: {result.epochs_done} epochs, best checkpoint {result.best_path}, last {result.last_path}")
     return 0
