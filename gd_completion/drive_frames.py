@@ -23,8 +23,8 @@ from gd_completion.evaluation.pandaset_eval import (
     MIN_INPUT_POINTS,
     SENSORS,
     collect_tracks,
-    is_vehicle_class,
     stationary_vehicles,
+    vehicle_tracks,
 )
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.preprocess import Preprocessing, network_input
@@ -115,15 +115,7 @@ def moving_vehicles(sequence: PandaSetSequence, sensors: Sequence[int] = SENSORS
     """uuid -> class of every vehicle track of the drive that is never marked stationary (cuboid sensor id -1 or
     one of `sensors`)."""
     parked = stationary_vehicles(sequence, sensors)
-    wanted = {-1, *sensors}
-    found: dict[str, str] = {}
-    for index in sequence.cuboid_indices():
-        for record in sequence.cuboids(index):
-            uuid, label = str(record.get("uuid")), str(record.get("label", ""))
-            if (uuid not in parked and is_vehicle_class(label) and record.get("stationary") is not True
-                    and int(record.get("cuboids.sensor_id", -1)) in wanted):
-                found.setdefault(uuid, label)
-    return found
+    return {uuid: label for uuid, label in vehicle_tracks(sequence, sensors).items() if uuid not in parked}
 
 
 def drive_frames(drive: DriveSettings, *, n_input: int = 512, preprocessing: Preprocessing | None = None,
@@ -134,7 +126,6 @@ def drive_frames(drive: DriveSettings, *, n_input: int = 512, preprocessing: Pre
     box (`evaluation.box_noise.noisy_box`, the sigmas of `noise` (default the evaluation's) scaled from
     `drive.sigma_scale[0]` to `[1]` over the draws, draw k seeded `drive.seed + k`), cropped through `preprocessing`
     (the contract of the checkpoint whose refiner trains) and brought to `n_input` points."""
-    low, high = drive.sigma_scale
     base = noise or BoxNoise()
     sequence = PandaSetSequence(drive.pandaset)
     vehicles = moving_vehicles(sequence, sensors)
@@ -143,7 +134,7 @@ def drive_frames(drive: DriveSettings, *, n_input: int = 512, preprocessing: Pre
         raise DataFormatError(f"{drive.pandaset}: no moving vehicle tracks")
     prep = replace(preprocessing or Preprocessing(), min_points=1)
     parts: list[tuple[np.ndarray, tuple[float, ...], np.ndarray, int]] = []
-    factors = list(np.linspace(low, high, drive.draws)) if drive.draws > 1 else [low] * drive.draws
+    factors = list(np.linspace(*drive.sigma_scale, drive.draws))   # one draw: the low factor; none: []
     for k, factor in enumerate(factors or [None]):   # no draw: one pass for the annotated boxes
         shaken = None if factor is None else replace(
             base, centre_xy=base.centre_xy * factor, centre_z=base.centre_z * factor, size=base.size * factor,

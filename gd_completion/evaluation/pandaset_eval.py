@@ -100,9 +100,10 @@ class VehicleTrack:
                 for k in (rich[i] for i in pose_subset(len(rich), max_poses))]
 
 
-def stationary_vehicles(sequence: PandaSetSequence, sensor: int | Sequence[int] = PANDAR64) -> dict[str, str]:
-    """uuid -> PandaSet class of every track marked stationary with a vehicle class (cuboid sensor id -1 or
-    one of `sensor`)."""
+def vehicle_tracks(sequence: PandaSetSequence, sensor: int | Sequence[int] = PANDAR64, *,
+                   stationary_only: bool = False) -> dict[str, str]:
+    """uuid -> PandaSet class (its first record's) of every track with a vehicle class (cuboid sensor id -1 or one of
+    `sensor`); with `stationary_only`, only of the tracks with a record marked stationary."""
     wanted = {-1, *((sensor,) if isinstance(sensor, int) else sensor)}
     found: dict[str, str] = {}
     indices = sequence.cuboid_indices()
@@ -111,10 +112,16 @@ def stationary_vehicles(sequence: PandaSetSequence, sensor: int | Sequence[int] 
     for index in indices:
         for record in sequence.cuboids(index):
             label = str(record.get("label", ""))
-            if (record.get("stationary") is True and is_vehicle_class(label)
+            if ((record.get("stationary") is True or not stationary_only) and is_vehicle_class(label)
                     and int(record.get("cuboids.sensor_id", -1)) in wanted):
                 found.setdefault(str(record.get("uuid")), label)
     return found
+
+
+def stationary_vehicles(sequence: PandaSetSequence, sensor: int | Sequence[int] = PANDAR64) -> dict[str, str]:
+    """uuid -> PandaSet class of every track marked stationary with a vehicle class (cuboid sensor id -1 or
+    one of `sensor`)."""
+    return vehicle_tracks(sequence, sensor, stationary_only=True)
 
 
 def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: Preprocessing, *,
