@@ -14,7 +14,9 @@ box's centre is estimated in that box's frame by
 - `mean`: the mean of the refiner's and the faces' estimates.
 
 Printed: the RMS error of the centre along and across the box (metres), for the moving vehicles (never scored by
-the evaluation; the gaps come from them) and the stationary ones (the evaluation's), noisy and annotated boxes.
+the evaluation; the gaps come from them) and the stationary ones (the evaluation's), noisy and annotated boxes; and
+the RMS heading error (degrees) of the given box, the refiner and an L-shape search (the closeness criterion of
+Zhang et al. 2017 over +-10 deg in steps of 0.5 deg).
 
     python benchmarks/centre_estimates.py [--model PT] [--pandaset DIR] [--every N]
 """
@@ -99,25 +101,47 @@ def faces_centre(crop: Crop, gaps: tuple[float, float]) -> np.ndarray:
     return np.where(np.abs(centre) <= MAX_SHIFT, centre, 0.0)
 
 
+def lshape_yaw(crop: Crop, max_deg: float = 10.0, step_deg: float = 0.5, floor: float = 0.02) -> float:
+    """Heading offset (rad) of the candidate whose rotated points lie closest to the edges of their extent."""
+    xy = crop.points[:, :2] * crop.box.size[0]
+    angles = np.radians(np.arange(-max_deg, max_deg + 1e-9, step_deg))[:, None]
+    c, s = np.cos(angles), np.sin(angles)
+    along, across = c * xy[:, 0] + s * xy[:, 1], -s * xy[:, 0] + c * xy[:, 1]
+
+    def to_edge(v: np.ndarray) -> np.ndarray:
+        lo, hi = np.percentile(v, [QUANTILE, 100 - QUANTILE], axis=1)
+        return np.minimum(np.abs(v - lo[:, None]), np.abs(hi[:, None] - v))
+
+    score = (1.0 / np.maximum(np.minimum(to_edge(along), to_edge(across)), floor)).sum(1)
+    return float(angles[int(np.argmax(score)), 0])
+
+
 @torch.inference_mode()
-def refiner_centre(model: GGDNet, crop: Crop) -> np.ndarray:
-    """(2,) centre offset (metres, box axes) of the model's box refiner."""
+def refiner_vector(model: GGDNet, crop: Crop) -> np.ndarray:
+    """(7,) `BoxFrame` vector of the model's box refiner."""
     assert model.refiner is not None
     points = torch.from_numpy(network_input(crop.points.astype(np.float32), model.config.num_input))[None]
-    vector = model.refiner.vector(points, box_shape([crop.box.size]))[0].double().numpy()
-    return vector[:2] * crop.box.size[0]
+    return model.refiner.vector(points, box_shape([crop.box.size]))[0].double().numpy()
 
 
-def rms_errors(model: GGDNet, rows: list[Crop], gaps: tuple[float, float]) -> dict[str, np.ndarray]:
-    """Per estimate, the RMS error (metres) of the centre along and across the box."""
+def rms_errors(model: GGDNet, rows: list[Crop], gaps: tuple[float, float]
+               ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Per estimate, the RMS error (metres) of the centre along and across the box; per heading estimate its RMS
+    error (degrees)."""
     errors: dict[str, list[np.ndarray]] = {"given": [], "refiner": [], "faces": [], "mean": []}
+    headings: dict[str, list[float]] = {"given": [], "refiner": [], "L-shape": []}
     for crop in rows:
-        truth = true_frame(crop.truth, crop.box)[:2].astype(np.float64) * crop.box.size[0]
-        refined, faces = refiner_centre(model, crop), faces_centre(crop, gaps)
+        truth = true_frame(crop.truth, crop.box).astype(np.float64)
+        centre = truth[:2] * crop.box.size[0]
+        vector = refiner_vector(model, crop)
+        refined, faces = vector[:2] * crop.box.size[0], faces_centre(crop, gaps)
         for name, estimate in (("given", np.zeros(2)), ("refiner", refined), ("faces", faces),
                                ("mean", (refined + faces) / 2)):
-            errors[name].append(estimate - truth)
-    return {name: np.sqrt(np.mean(np.square(e), axis=0)) for name, e in errors.items()}
+            errors[name].append(estimate - centre)
+        for name, yaw in (("given", 0.0), ("refiner", float(vector[3])), ("L-shape", lshape_yaw(crop))):
+            headings[name].append(yaw - float(truth[3]))
+    return ({name: np.sqrt(np.mean(np.square(e), axis=0)) for name, e in errors.items()},
+            {name: float(np.degrees(np.sqrt(np.mean(np.square(h))))) for name, h in headings.items()})
 
 
 def main() -> None:
@@ -135,13 +159,15 @@ def main() -> None:
     print(f"face gaps (median, moving vehicles' annotated boxes): along {gaps[0]:.3f} m, across {gaps[1]:.3f} m")
     print("RMS centre error along / across the box (m)")
     print(f"{'vehicles':<11}{'boxes':<10}{'crops':>6}" + "".join(f"{n:>16}" for n in ("given", "refiner", "faces",
-                                                                                        "mean")))
+                                                                                        "mean"))
+          + "   heading RMS (deg): given / refiner / L-shape")
     for kind, vehicles in (("moving", moving), ("stationary", parked)):
         for noisy in (True, False):
             rows = crops(sequence, vehicles, frames, noisy)
-            errors = rms_errors(model, rows, gaps)
+            errors, headings = rms_errors(model, rows, gaps)
             print(f"{kind:<11}{'noisy' if noisy else 'annotated':<10}{len(rows):>6}"
-                  + "".join(f"{e[0]:>9.3f} / {e[1]:.3f}" for e in errors.values()))
+                  + "".join(f"{e[0]:>9.3f} / {e[1]:.3f}" for e in errors.values())
+                  + "   " + " / ".join(f"{h:.2f}" for h in headings.values()))
 
 
 if __name__ == "__main__":
