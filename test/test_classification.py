@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from gd_completion.errors import EvaluationError
 from gd_completion.evaluation import classification as cls
 from gd_completion.model import GGDConfig, GGDNet, save_checkpoint
 from gd_completion.synth.meshio import HELDOUT_MESHES, sample_surface
@@ -133,37 +134,66 @@ def test_tiny_experiment_renders_its_values(shared_data: Path) -> None:
     model = GGDNet(TINY).eval()
     result = cls.evaluate_classification(model, mesh_dir=shared_data / "vehicle-meshes",
                                          pandaset=shared_data / "pandaset-002", train_samples=24, synthetic_samples=6,
-                                         mesh_samples=4, max_vehicles=3, max_per_vehicle=1, settings=FAST)
+                                         mesh_samples=4, max_vehicles=3, max_per_vehicle=1, settings=FAST,
+                                         classifiers=2)
     assert [s.name for s in result.sets] == ["synthetic shapes", "held-out meshes", "PandaSet 002"]
     synthetic, meshes, pandaset = result.sets
     assert (synthetic.n, meshes.n) == (6, 4) and 1 <= pandaset.n <= 3
     assert set(meshes.truth) <= {"car", "suv", "bus"} and set(pandaset.truth) <= set(cls.PANDASET_CLASSES)
-    assert result.train.n_shapes == 24 and sum(result.train.counts.values()) == 24
+    assert [log.seed for log in result.train] == [cls.TRAIN_SEED, cls.TRAIN_SEED + 1]
+    assert all(log.n_shapes == 24 and sum(log.counts.values()) == 24 for log in result.train)
+    assert len(result.validation) == 2 and all(0.0 <= v <= 1.0 for v in result.validation)
     for s in result.sets:
         assert set(s.predicted) == set(cls.INPUT_NAMES)
         for name in cls.INPUT_NAMES:
-            assert s.predicted[name].shape == (s.n,) and 0.0 <= s.accuracy(name) <= 1.0
+            assert s.predicted[name].shape == (2, s.n) and s.correct[name].shape == (2, s.n)
+            per_classifier = s.correct[name].mean(1)
+            np.testing.assert_allclose(s.accuracies(name), per_classifier)
+            assert s.accuracy(name) == pytest.approx(per_classifier.mean())
     text = cls.classification_section(result)
     assert text.startswith("## Completion for classification")
     header = next(line for line in text.splitlines() if line.startswith("| input") and "n = 6" in line)
     assert _cells(header)[1:] == ["synthetic shapes (n = 6)", "held-out meshes (n = 4)",
                                   f"PandaSet 002 (n = {pandaset.n})"]
-    rows = {_cells(line)[0]: _cells(line)[1:] for line in text.split("Accuracy:")[1].split("\n\nOn the")[0].splitlines()
+    table = text.split("Accuracy (mean over the classifiers, their range in brackets):")[1].split("\n\nOn the")[0]
+    rows = {_cells(line)[0]: _cells(line)[1:] for line in table.splitlines()
             if line.startswith("| ") and not line.startswith("| input")}
     assert list(rows) == [cls.INPUT_TITLES[n] for n in cls.INPUT_NAMES]
-    for name in cls.INPUT_NAMES:
-        assert rows[cls.INPUT_TITLES[name]] == [f"{s.accuracy(name):.3f}" for s in result.sets]
-    gain = meshes.accuracy("ggd_merge") - meshes.accuracy("input")
-    assert f"On the held-out meshes (n = 4): GGD-Net published - raw input = {gain:+.3f}" in text
+    for name in cls.INPUT_NAMES:   # the mean over the two classifiers and their range
+        assert rows[cls.INPUT_TITLES[name]] == [
+            f"{s.accuracy(name):.3f} ({s.accuracies(name).min():.3f}-{s.accuracies(name).max():.3f})"
+            for s in result.sets]
+    gains = meshes.accuracies("ggd_merge") - meshes.accuracies("input")
+    assert (f"On the held-out meshes (n = 4): GGD-Net published - raw input = {gains.mean():+.3f} "
+            f"({gains.min():+.3f} to {gains.max():+.3f})") in text
+    assert f"seeds {cls.TRAIN_SEED}, {cls.TRAIN_SEED + 1}" in text
+    assert "accuracy on complete shapes drawn like the training ones" in text
     assert "multi-frame aggregate, 2048 points" in text
     assert "### Per-class accuracy: PandaSet 002" in text
-    assert "Misclassified (GGD-Net published)" in text
+    assert "Misclassified (GGD-Net published, all 2 classifiers)" in text
 
 
 def test_section_without_sets() -> None:
     log = cls.ClassifierLog(2, {"car": 2}, 0, FAST, 0.1, 1.0, 0.5, "test")
-    text = cls.classification_section(cls.ClassificationResult(log, [], notes=["nothing to classify"]))
+    text = cls.classification_section(cls.ClassificationResult([log], [0.5], [], notes=["nothing to classify"]))
     assert "No set was classified" in text and "nothing to classify" in text
+    assert "1 PointNet (" in text and ": 0.500." in text
+
+
+def test_one_classifier_shows_plain_accuracies() -> None:
+    truth = ["car", "car", "bus", "bus"]
+    accepted = np.eye(len(cls.CLASSES), dtype=bool)[[cls.class_index(t) for t in truth]]
+    predicted = {n: np.array([[cls.class_index("car")] * 4]) for n in cls.INPUT_NAMES}
+    correct = {n: accepted[np.arange(4), p] for n, p in predicted.items()}
+    log = cls.ClassifierLog(2, {"car": 2}, 7, FAST, 0.1, 1.0, 0.5, "test")
+    result = cls.ClassificationResult([log], [0.75], [cls.SetResult("synthetic shapes", "test", "complete", truth,
+                                                                    predicted, correct)])
+    text = cls.classification_section(result)
+    rows = {_cells(line)[0]: _cells(line)[1:] for line in text.split("Accuracy:")[1].split("\n\nOn the")[0].splitlines()
+            if line.startswith("| ") and not line.startswith("| input")}
+    assert rows == {cls.INPUT_TITLES[n]: ["0.500"] for n in cls.INPUT_NAMES}
+    assert "published - raw input = +0.000 (network output" in text
+    assert "Misclassified (GGD-Net published): bus -> car 2." in text
 
 
 def test_evaluate_command_classification_part(tmp_path: Path, shared_data: Path, capsys) -> None:
@@ -182,6 +212,11 @@ def test_evaluate_command_classification_part(tmp_path: Path, shared_data: Path,
     assert "## Completion for classification" in text and "synthetic shapes (n = 3)" in text
     assert "held-out meshes (n = 2)" in text and "PandaSet 002 (n =" not in text
     assert "- classification: " in text
+    assert parser.parse_args(common).classifiers == cls.CLASSIFIERS
+    bad = parser.parse_args(common + ["--output", str(tmp_path / "bad"), "--classifiers", "0"])
+    with pytest.raises(EvaluationError, match="at least one classifier"):
+        bad.func(bad)
+    assert not (tmp_path / "bad").exists()
     args = parser.parse_args(common + ["--output", str(tmp_path / "without"), "--no-classification"])
     assert args.func(args) == 0
     text = (tmp_path / "without" / "report.md").read_text()

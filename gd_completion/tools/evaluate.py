@@ -40,6 +40,8 @@ def run_evaluation(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     noise = None if args.no_box_noise else BoxNoise(*(args.box_noise or ()), seed=args.box_noise_seed)  # checked first
+    if args.classifiers < 1:
+        raise EvaluationError(f"--classifiers {args.classifiers}: at least one classifier")
     out = make_folder(args.output)  # an unwritable output fails before the evaluation, not after it
     synthetic_seed = EVAL_SEED if args.synthetic_seed is None else args.synthetic_seed
     if args.threads:
@@ -107,7 +109,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
             pandaset=None if args.no_pandaset else (args.pandaset or DEFAULT_PANDASET),
             train_samples=args.classification_train_samples, synthetic_samples=args.classification_samples,
             mesh_samples=args.heldout_mesh_samples, sensors=tuple(args.sensors), max_vehicles=args.max_vehicles,
-            max_batch=args.max_batch)
+            classifiers=args.classifiers, max_batch=args.max_batch)
         emit(classification_section(classified))
         steps = ", ".join(f"{k} {v:.1f} s" for k, v in classified.seconds.items())
         timings.append(f"classification: {time.perf_counter() - t0:.1f} s ({steps})")
@@ -224,6 +226,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="skip the downstream classification part (as does --synthetic-samples 0)")
     parser.add_argument("--classification-train-samples", type=int, default=2400,
                         help="complete shapes the part's PointNet classifier trains on (default 2400)")
+    parser.add_argument("--classifiers", type=int, default=3,
+                        help="classifiers trained (seeds in a row) and averaged in the classification part (default "
+                             "3: one classifier's accuracy moves by several points with its seed)")
     parser.add_argument("--classification-samples", type=int, default=330,
                         help="procedural held-out shapes it classifies (default 330; the held-out meshes follow "
                         "--heldout-mesh-samples, PandaSet --pandaset)")
