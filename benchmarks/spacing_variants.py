@@ -11,12 +11,14 @@ shipped merge (`merge.merge_with_pool`, the ground band pooled on PandaSet):
   their ratio, parked and moving vehicles; about 100 s per variant; `exact:` variants are not supported there).
 
     python benchmarks/spacing_variants.py [--model PT] [--pandaset DIR] [--meshes DIR] [--heldout N]
-                                          [--variants SPEC ...] [--consistency]
+                                          [--variants SPEC ...] [--merge-weights NETWORK:MIRROR ...] [--consistency]
 
 A SPEC is `ITERATIONS:STEP:FLATTEN[:NEIGHBOURS]` (`spacing.SpacingSettings`, 8 neighbours unless given), `none` (the
 raw P_o) or
 `exact:ITERATIONS:STEP:FLATTEN` (the planes' 16 nearest searched among all points instead of the network's graph
-and two hops). The shipped settings are `5:0.3:0.3`. Also printed: the mirror + template prior, given the band."""
+and two hops). The shipped settings are `5:0.3:0.3`. `--merge-weights` merges each variant with these weights of the
+network's and the mirror's points (`merge.merge_with_pool`; default the shipped `0.25:0.5`), one row each. Also
+printed: the mirror + template prior, given the band."""
 from __future__ import annotations
 
 import argparse
@@ -32,7 +34,7 @@ from gd_completion.evaluation.mesh_distance import distances_to_meshes, surface_
 from gd_completion.evaluation.nearest import nearest_sq
 from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.evaluation.synthetic import _chamfer_row, load_heldout_meshes
-from gd_completion.merge import merge_with_pool
+from gd_completion.merge import MIRROR_WEIGHT, NETWORK_WEIGHT, merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import with_band
@@ -84,6 +86,8 @@ def main() -> None:
     parser.add_argument("--heldout", type=int, default=128, help="held-out mesh pairs (as the evaluation)")
     parser.add_argument("--variants", nargs="*", default=["none", "5:0.3:0", "0:0.3:0.3", "5:0.3:0.3", "8:0.3:0.3",
                                                           "5:0.3:0.45", "exact:5:0.3:0.3"])
+    parser.add_argument("--merge-weights", nargs="*", default=[f"{NETWORK_WEIGHT}:{MIRROR_WEIGHT}"],
+                        help="NETWORK:MIRROR weights of the merge, one row per pair and variant")
     parser.add_argument("--consistency", action="store_true", help="also track fusion's consistency per variant")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -100,19 +104,23 @@ def main() -> None:
     prior = [prior_outputs(with_band(p, b), s, raw.shape[1])["mirror_template"] for p, s, _, b in observations]
     prior_coverage = [nearest_sq(o[2], q).mean() * 1e3 for o, q in zip(observations, prior)]
     print(f"{'mirror + template':18s} {by_bucket(prior_coverage, where, bins)}")
+    weights = [tuple(float(w) for w in pair.split(":")) for pair in args.merge_weights]
     for spec in args.variants:
         points, ms = spaced(spec, raw, graph)
-        merged = [merge_with_pool(c, p, band=b).points for c, (p, _, _, b) in zip(points, observations)]
         network = [nearest_sq(o[2], c).mean() * 1e3 for o, c in zip(observations, points)]
-        published = [nearest_sq(o[2], m).mean() * 1e3 for o, m in zip(observations, merged)]
-        fidelity = [nearest_sq(o[0], m).mean() * 1e3 for o, m in zip(observations, merged)]
         h_points = spaced(spec, h_raw, h_graph)[0]
-        h_out = np.stack([merge_with_pool(c, p).points for c, p in zip(h_points, heldout.partial)])
-        row = _chamfer_row(h_out, heldout.complete)[0]
-        (distance,) = distances_to_meshes([h_out], [v for v, _ in heldout.meshes], [f for _, f in heldout.meshes])
-        print(f"{spec:18s} {by_bucket(network, where, bins)} | {by_bucket(published, where, bins)} | "
-              f"{by_bucket(fidelity, where, bins)} | {ms:.2f} || {row['cd']:.2f} {row['cd_dg']:.2f} "
-              f"{row['f_score']:.3f} {surface_shares(distance)[0]:.3f}", flush=True)
+        for network_weight, mirror_weight in weights:
+            kw = {"network_weight": network_weight, "mirror_weight": mirror_weight}
+            merged = [merge_with_pool(c, p, band=b, **kw).points for c, (p, _, _, b) in zip(points, observations)]
+            published = [nearest_sq(o[2], m).mean() * 1e3 for o, m in zip(observations, merged)]
+            fidelity = [nearest_sq(o[0], m).mean() * 1e3 for o, m in zip(observations, merged)]
+            h_out = np.stack([merge_with_pool(c, p, **kw).points for c, p in zip(h_points, heldout.partial)])
+            row = _chamfer_row(h_out, heldout.complete)[0]
+            (distance,) = distances_to_meshes([h_out], [v for v, _ in heldout.meshes], [f for _, f in heldout.meshes])
+            label = spec if len(weights) == 1 else f"{spec} @{network_weight:g}:{mirror_weight:g}"
+            print(f"{label:18s} {by_bucket(network, where, bins)} | {by_bucket(published, where, bins)} | "
+                  f"{by_bucket(fidelity, where, bins)} | {ms:.2f} || {row['cd']:.2f} {row['cd_dg']:.2f} "
+                  f"{row['f_score']:.3f} {surface_shares(distance)[0]:.3f}", flush=True)
     if args.consistency:
         print_consistency(model, args.pandaset, args.variants)
 

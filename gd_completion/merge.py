@@ -50,12 +50,13 @@ def mirrored(points: np.ndarray) -> np.ndarray:
     return np.asarray(points, np.float32) * np.array([1.0, -1.0, 1.0], np.float32)
 
 
-def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None = None) -> Merged:
-    """Weighted farthest point sampling (see the module) of the union of `measured` (M, 3), its mirror image and
-    `completion` (N_o, 3), all finite and in the normalised box frame, to `n` points (default N_o). Pass a pool of
-    the measured points (`merge_with_pool`) to bound the cost: about 1 ms for 2,000 measured and 2,048 completion
-    points on one core. When the union holds fewer than `n` distinct points, all of them are kept and the
-    completion's (else the mirror's) repeated."""
+def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None = None, *,
+                   network_weight: float = NETWORK_WEIGHT, mirror_weight: float = MIRROR_WEIGHT) -> Merged:
+    """Weighted farthest point sampling (see the module; the measured points weigh 1) of the union of `measured`
+    (M, 3), its mirror image and `completion` (N_o, 3), all finite and in the normalised box frame, to `n` points
+    (default N_o). Pass a pool of the measured points (`merge_with_pool`) to bound the cost: about 1 ms for 2,000
+    measured and 2,048 completion points on one core. When the union holds fewer than `n` distinct points, all of
+    them are kept and the completion's (else the mirror's) repeated."""
     completion = np.asarray(completion, np.float32).reshape(-1, 3)
     measured = np.asarray(measured, np.float32).reshape(-1, 3)
     n = len(completion) if n is None else int(n)
@@ -64,9 +65,11 @@ def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None =
         raise ValueError(f"cannot keep {n} of {len(union)} points")
     if not np.isfinite(union).all():
         raise ValueError("merge_measured: non-finite points")
-    weights = np.full(len(union), NETWORK_WEIGHT, np.float32)
+    if not (0.0 < network_weight <= 1.0 and 0.0 < mirror_weight <= 1.0):
+        raise ValueError(f"merge weights must be in (0, 1]: network {network_weight}, mirror {mirror_weight}")
+    weights = np.full(len(union), network_weight, np.float32)
     weights[:len(measured)] = 1.0
-    weights[len(measured):2 * len(measured)] = MIRROR_WEIGHT
+    weights[len(measured):2 * len(measured)] = mirror_weight
     keep = fps_pruned(union, n, weights=weights)
     if n > 1 and (keep[1:] == 0).any():
         # FPS took every distinct point and went back to point 0: exact repeats in the union (a sparse
@@ -81,12 +84,13 @@ def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None =
 
 
 def merge_with_pool(completion: np.ndarray, partial: np.ndarray, voxel: float = POOL_VOXEL,
-                    band: np.ndarray | None = None) -> Merged:
+                    band: np.ndarray | None = None, *, network_weight: float = NETWORK_WEIGHT,
+                    mirror_weight: float = MIRROR_WEIGHT) -> Merged:
     """`merge_measured` with one point per `voxel` voxel of a vehicle's measured `partial` (normalised; the first in
     its order: a track's fused partial lists the oldest frame first, so the pool changes little from frame to
     frame) and of its ground-band points `band` (`preprocess.CroppedVehicle.band`: tyres and wheel arches the
     network is not fed). `Merged.measured_row` indexes `partial` followed by `band`."""
     measured = with_band(partial, band)
     rows = voxel_first_indices(measured, voxel)
-    merged = merge_measured(completion, measured[rows])
+    merged = merge_measured(completion, measured[rows], network_weight=network_weight, mirror_weight=mirror_weight)
     return Merged(merged.points, np.where(merged.is_measured, rows[np.maximum(merged.measured_row, 0)], -1))

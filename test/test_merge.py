@@ -133,6 +133,24 @@ def test_weighted_pruned_fps_returns_the_weighted_scan(m, n, leaf):
             fps_pruned(xyz, n, leaf, bad)
 
 
+def test_lower_weights_keep_more_of_the_seen_side():
+    """With the mirror's and the network's points weighing w, the seen side keeps more points per area than the other
+    the lower w is: about as many at w = 1 (an even thinning), about 1 / w times as many at 0.5 (the shipped mirror
+    weight: the test below), more again at 0.25."""
+    rng = np.random.default_rng(5)
+    side = np.stack([rng.uniform(-0.5, 0.5, 6000), np.full(6000, 0.2), rng.uniform(-0.15, 0.15, 6000)],
+                    1).astype(np.float32)
+    completion = np.stack([rng.uniform(-0.5, 0.5, 2048), np.full(2048, -0.2), rng.uniform(-0.15, 0.15, 2048)],
+                          1).astype(np.float32)
+    ratios = []
+    for weight in (1.0, 0.5, 0.25):
+        merged = merge_with_pool(completion, side, network_weight=weight, mirror_weight=weight)
+        unseen = np.abs(merged.points[:, 1] + 0.2) < 1e-6
+        assert merged.is_measured.sum() + unseen.sum() == 2048
+        ratios.append(merged.is_measured.sum() / unseen.sum())
+    assert 0.8 <= ratios[0] <= 1.2 and 1.6 <= ratios[1] <= 2.4 and ratios[2] > 1.1 * ratios[1]
+
+
 def test_a_densely_seen_side_keeps_its_measurements_at_twice_the_density():
     """A side seen by 6,000 points, the other side covered by their mirror image and the network: the weighted merge
     keeps about 1 / MIRROR_WEIGHT (2) times as many points per area on the seen side as on the other, all of them
@@ -202,6 +220,9 @@ def test_merge_refuses_bad_input():
     broken[5] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
         merge_measured(broken, np.ones((10, 3), np.float32), 64)
+    for weights in ({"network_weight": 0.0}, {"mirror_weight": 1.5}, {"network_weight": float("nan")}):
+        with pytest.raises(ValueError, match="merge weights"):
+            merge_measured(np.zeros((10, 3), np.float32), np.ones((5, 3), np.float32), 8, **weights)
 
 
 def test_merge_takes_each_distinct_point_once():
