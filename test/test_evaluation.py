@@ -232,6 +232,39 @@ def test_pandaset_aggregate_of_a_parked_vehicle(shared_data):
     assert rms_m < 0.04
 
 
+def test_a_wider_input_margin_widens_the_inputs_not_the_references(shared_data):
+    """`collect_tracks(input_margin=)`: the references are those of the contract's margin, each entry's inputs
+    hold its reference's points and more (some entries gain points), the noisy boxes are cropped as widely, and a
+    margin narrower than the contract's is refused."""
+    from gd_completion.datasets.pandaset import PandaSetSequence
+    from gd_completion.evaluation.box_noise import BoxNoise
+    from gd_completion.evaluation.pandaset_eval import collect_tracks, stationary_vehicles
+    from gd_completion.preprocess import Preprocessing
+
+    sequence = PandaSetSequence(shared_data / "pandaset-002")
+    vehicles = stationary_vehicles(sequence)
+    prep, frames = Preprocessing(min_points=1), range(0, 3)
+    narrow = collect_tracks(sequence, vehicles, prep, frames=frames, noise=BoxNoise())
+    wide = collect_tracks(sequence, vehicles, prep, frames=frames, noise=BoxNoise(), input_margin=0.4)
+    gained = noisy_gained = 0
+    for uuid, track in narrow.items():
+        other = wide[uuid]
+        assert other.frames == track.frames and len(other.reference) == len(track.points)
+        for k, points in enumerate(track.points):
+            np.testing.assert_array_equal(other.reference[k], points)   # the contract's crop
+            np.testing.assert_array_equal(track.reference[k], points)   # equal margins: the inputs themselves
+            wider = {tuple(p) for p in other.points[k]}
+            assert all(tuple(p) in wider for p in points)
+            gained += len(other.points[k]) > len(points)
+            if track.noisy[k] is not None and other.noisy[k] is not None:
+                assert other.noisy[k].box == track.noisy[k].box   # the same noisy box, cropped more widely
+                noisy_gained += len(other.noisy[k].normalized) > len(track.noisy[k].normalized)
+                assert len(other.noisy[k].normalized) >= len(track.noisy[k].normalized)
+    assert gained > 0 and noisy_gained > 0
+    with pytest.raises(ValueError, match="the contract's"):
+        collect_tracks(sequence, vehicles, prep, frames=frames, input_margin=0.05)
+
+
 # --- the evaluate command ----------------------------------------------------------------------------
 
 def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
@@ -472,3 +505,46 @@ def test_evaluate_command_box_noise_sigmas(tmp_path, shared_data):
         assert not failed.exists()
     with pytest.raises(SystemExit):   # sigmas for a run that is skipped: refused, not ignored
         parser.parse_args(["evaluate", "--box-noise", "0.1", "0", "0", "0", "--no-box-noise"])
+
+
+def test_evaluate_command_crop_margin(tmp_path, shared_data):
+    """`--crop-margin` widens the PandaSet inputs only: the same observations and references (the band-kept and
+    the fidelity tables' reference rows equal), the report says so; a margin narrower than the model's contract or
+    not finite is a one-line error before any output."""
+    import argparse
+
+    from gd_completion.tools import evaluate
+
+    torch.manual_seed(0)
+    model_path = save_checkpoint(tmp_path / "tiny.pt", GGDNet(TINY))
+    parser = argparse.ArgumentParser()
+    evaluate.register(parser.add_subparsers())
+    common = ["--model", str(model_path), "--synthetic-samples", "0", "--pandaset", str(shared_data / "pandaset-002"),
+              "--max-vehicles", "2", "--max-frames-per-vehicle", "2", "--threads", "1", "--no-fusion",
+              "--no-reuse", "--random-reference-points", "2000", "--no-box-noise"]
+    texts = {}
+    for name, extra in (("contract", []), ("wide", ["--crop-margin", "0.3"])):
+        args = parser.parse_args(["evaluate", "--output", str(tmp_path / name), *extra, *common])
+        assert args.func(args) == 0
+        texts[name] = (tmp_path / name / "report.md").read_text()
+    assert "cropped with a margin of 0.3 m" in texts["wide"] and "cropped with a margin" not in texts["contract"]
+    counts = [t.split(" observations (frame, sensor)")[0].rsplit("\n", 1)[-1] for t in texts.values()]
+    assert counts[0] == counts[1]
+
+    def row(text: str, section: str, title: str) -> str:
+        table = text.split(section)[1].split("###")[0]
+        return next(line for line in table.splitlines() if line.startswith(f"| {title}"))
+
+    # the references and the fidelity's points are the contract's: methods that ignore the input agree
+    for section in ("### Coverage error x1e3 (reference", "### Ground band kept: coverage"):
+        assert row(texts["contract"], section, "box fill") == row(texts["wide"], section, "box fill")
+    # the inputs are wider: the raw input covers the reference at least as well, and differs
+    assert row(texts["contract"], "### Coverage error x1e3 (reference", "raw input") != \
+        row(texts["wide"], "### Coverage error x1e3 (reference", "raw input")
+    for bad, message in ((["--crop-margin", "0.05"], "narrower than the model's contract"),
+                         (["--crop-margin", "nan"], "a margin in metres")):
+        failed = tmp_path / f"failed_{bad[1]}"
+        args = parser.parse_args(["evaluate", "--output", str(failed), *bad, *common])
+        with pytest.raises(EvaluationError, match=message):
+            args.func(args)
+        assert not failed.exists()

@@ -56,7 +56,9 @@ def size_bin(n_points: int) -> str:
 @dataclass
 class VehicleTrack:
     """One stationary vehicle over the drive: its in-box points per (frame, sensor) entry, in the normalised
-    box frame, with the world box, the sensor position and (box-noise runs) the crop of a noisy box."""
+    box frame, with the world box, the sensor position and (box-noise runs) the crop of a noisy box. `points` are
+    the inputs (cropped with the input margin), `reference` the same entry through the evaluation's contract (the
+    aggregate's points; the same arrays when the margins agree)."""
 
     uuid: str
     instance_id: int
@@ -70,12 +72,13 @@ class VehicleTrack:
     bands: list[np.ndarray] = field(default_factory=list)  # normalised (K, 3) per entry: `CroppedVehicle.band`
     in_box: list[np.ndarray] = field(default_factory=list)  # normalised (M', 3) per entry: every in-box point,
     # the ground band (the lowest `ground_clearance` of the box) included
+    reference: list[np.ndarray] = field(default_factory=list)  # normalised (R, 3) per entry: the contract's crop
 
     def aggregate(self) -> np.ndarray:
-        """All entries' points in the box frame (normalised), (sum M, 3) float32."""
-        if not self.points:
+        """All entries' reference points in the box frame (normalised), (sum R, 3) float32."""
+        if not self.reference:
             return np.zeros((0, 3), np.float32)
-        return np.concatenate(self.points).astype(np.float32, copy=False)
+        return np.concatenate(self.reference).astype(np.float32, copy=False)
 
     def aggregate_in_box(self) -> np.ndarray:
         """All entries' in-box points, ground band included (normalised), (sum M', 3) float32."""
@@ -84,8 +87,9 @@ class VehicleTrack:
         return np.concatenate(self.in_box).astype(np.float32, copy=False)
 
     def input_frames(self, min_points: int = MIN_INPUT_POINTS, max_frames: int | None = None) -> list[int]:
-        """Positions (into `frames`) with >= `min_points` points; at most `max_frames`, evenly spaced."""
-        ok = [k for k, p in enumerate(self.points) if len(p) >= min_points]
+        """Positions (into `frames`) with >= `min_points` reference points (the same observations whatever the
+        input margin); at most `max_frames`, evenly spaced."""
+        ok = [k for k, p in enumerate(self.reference) if len(p) >= min_points]
         if max_frames is not None and len(ok) > max_frames:
             picks = np.unique(np.round(np.linspace(0, len(ok) - 1, max(1, max_frames))).astype(int))
             ok = [ok[i] for i in picks]
@@ -95,8 +99,8 @@ class VehicleTrack:
         """(sensor position, points) in the normalised box frame for at most `max_poses` entries of `sensor`
         (evenly spaced over its frames; poses.json holds that lidar's pose): the scans of `observed`."""
         entries = [k for k, s in enumerate(self.sensors) if s == sensor]
-        rich = [k for k in entries if len(self.points[k]) >= MIN_INPUT_POINTS] or entries
-        return [(normalize(self.origins[k][None], self.boxes[k])[0], self.points[k])
+        rich = [k for k in entries if len(self.reference[k]) >= MIN_INPUT_POINTS] or entries
+        return [(normalize(self.origins[k][None], self.boxes[k])[0], self.reference[k])
                 for k in (rich[i] for i in pose_subset(len(rich), max_poses))]
 
 
@@ -126,8 +130,8 @@ def stationary_vehicles(sequence: PandaSetSequence, sensor: int | Sequence[int] 
 
 def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: Preprocessing, *,
                    frames: Sequence[int] | None = None, sensors: Sequence[int] = (PANDAR64,),
-                   noise: BoxNoise | None = None, noise_min_points: int = MIN_INPUT_POINTS
-                   ) -> dict[str, VehicleTrack]:
+                   noise: BoxNoise | None = None, noise_min_points: int = MIN_INPUT_POINTS,
+                   input_margin: float | None = None) -> dict[str, VehicleTrack]:
     """In-box points of `vehicles` (uuid -> class) per frame and sensor, through the preprocessing contract
     (`prep`).
 
@@ -136,7 +140,13 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
     a lidar file are skipped. With `noise`, entries with >= `noise_min_points` points are cropped again with
     a noisy box (`box_noise.noisy_box`, key (track id, frame, sensor)); None where that crop is empty. Every
     entry also keeps all its in-box points, the ground band below `prep.ground_clearance` included (`in_box`).
+    `input_margin` (metres; default `prep.crop_margin`): the crop margin of the inputs, the exact and the noisy
+    boxes' (`points`, `bands`, `noisy`); the references (`reference`, `in_box`) keep `prep`'s. It can only widen the
+    contract's (ValueError), so an entry's inputs hold its reference's points.
     """
+    if input_margin is not None and not prep.crop_margin <= input_margin <= 5.0:
+        raise ValueError(f"input margin {input_margin}: must be in [{prep.crop_margin} (the contract's), 5] metres")
+    inputs = prep if input_margin is None else replace(prep, crop_margin=float(input_margin))
     tracks = {uuid: VehicleTrack(uuid, sequence.track_ids.get(uuid, 0), label) for uuid, label in vehicles.items()}
     by_id = {t.instance_id: t for t in tracks.values()}
     eye, zero = np.eye(3), np.zeros(3)
@@ -155,18 +165,22 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
             points = arrays["xyz"][arrays["sensor"] == sensor]
             points = points[finite_mask(points)]
             cropped = crop_vehicles(points, boxes, prep)[0]
+            given = cropped if inputs == prep else crop_vehicles(points, boxes, inputs)[0]
+            entered = {v.box.instance_id: v for v in given}
             in_box = {v.box.instance_id: v.normalized
                       for v in crop_vehicles(points, boxes, replace(prep, ground_clearance=0.0, min_points=1))[0]}
             noisy: dict[int, CroppedVehicle] = {}
             if noise is not None:
                 shaken = [noisy_box(v.box, noise, (v.box.instance_id, index, sensor)) for v in cropped
                           if len(v.normalized) >= noise_min_points]
-                noisy = {v.box.instance_id: v for v in crop_vehicles(points, shaken, prep)[0]}
+                noisy = {v.box.instance_id: v for v in crop_vehicles(points, shaken, inputs)[0]}
             for vehicle in cropped:
                 track = by_id[vehicle.box.instance_id]
+                entry = entered[vehicle.box.instance_id]   # the wider crop holds the reference's points
                 track.frames.append(int(index))
-                track.points.append(vehicle.normalized)
-                track.bands.append(vehicle.band)
+                track.reference.append(vehicle.normalized)
+                track.points.append(entry.normalized)
+                track.bands.append(entry.band)
                 track.boxes.append(vehicle.box)
                 track.sensors.append(int(sensor))
                 track.origins.append(np.asarray(origin, np.float64))
@@ -272,6 +286,7 @@ class PandaSetResult:
     noise: BoxNoise | None = None
     random_points: int = RANDOM_REFERENCE_POINTS
     voxel_points: int = REFERENCE_POINTS
+    input_margin: float | None = None   # the inputs' crop margin when wider than the contract's
 
 
 def reduced_observations(root: str | Path, max_frames_per_vehicle: int = 8
@@ -297,7 +312,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
                       max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS,
                       random_points: int = RANDOM_REFERENCE_POINTS, max_batch: int = 32, n_examples: int = 4,
                       frames: Sequence[int] | None = None, preprocessing: Preprocessing | None = None,
-                      sensors: Sequence[int] = SENSORS, noise: BoxNoise | None = DEFAULT_BOX_NOISE) -> PandaSetResult:
+                      sensors: Sequence[int] = SENSORS, noise: BoxNoise | None = DEFAULT_BOX_NOISE,
+                      input_margin: float | None = None) -> PandaSetResult:
     """Complete single observations (frame, sensor) of every stationary PandaSet vehicle and compare every
     method with the vehicle's multi-frame aggregate (all frames, all `sensors`).
 
@@ -305,7 +321,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     with at least one point goes into the aggregate, inputs need MIN_INPUT_POINTS points. By default every
     observation is evaluated; `max_frames_per_vehicle` keeps at most that many per vehicle (evenly spaced),
     `max_vehicles` the first N stationary vehicles. Vehicles seen in a single frame are left out (no
-    multi-frame reference). `noise`: also run the evaluation with noisy boxes (None skips it).
+    multi-frame reference). `noise`: also run the evaluation with noisy boxes (None skips it). `input_margin`: the
+    inputs' crop margin (metres; default the contract's), the references' stays the contract's (`collect_tracks`).
     """
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -316,7 +333,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     if max_vehicles is not None:
         vehicles = dict(list(vehicles.items())[:max_vehicles])
     prep = replace(preprocessing or Preprocessing(), min_points=1)
-    tracks = collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=noise)
+    tracks = collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=noise,
+                            input_margin=input_margin)
     seconds["load+crop"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -374,7 +392,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             to_out = nearest_sq(ref_random, out)
             item.coverage[name] = float(to_out.mean()) * COVERAGE_SCALE
             item.coverage_voxel[name] = float(nearest_sq(ref_voxel, out).mean()) * COVERAGE_SCALE
-            item.fidelity[name] = float(nearest_sq(partial, out).mean()) * FIDELITY_SCALE
+            item.fidelity[name] = float(nearest_sq(track.reference[k], out).mean()) * FIDELITY_SCALE
             two = two_sided(out, ref_random, images, TAU, to_out)
             item.precision[name], item.judged[name] = two.precision, two.judged_share
             item.recall[name], item.f_score[name] = two.recall, two.f_score
@@ -403,7 +421,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     examples = _examples(items, meta, clean.published, refs, n_examples)
     worst = _worst(items, meta, clean.published, refs, n_examples)
     return PandaSetResult(items, len(refs), n_candidates, max_frames_per_vehicle, seconds, examples, notes, worst,
-                          sensors, noise, random_points, reference_points)
+                          sensors, noise, random_points, reference_points, input_margin)
 
 
 def _method_outputs(partial: np.ndarray, band: np.ndarray, size: Sequence[float], n_out: int, generation: np.ndarray,

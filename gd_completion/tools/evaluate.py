@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import math
 import time
 from pathlib import Path
 
@@ -40,14 +41,19 @@ def run_evaluation(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     noise = None if args.no_box_noise else BoxNoise(*(args.box_noise or ()), seed=args.box_noise_seed)  # checked first
+    if args.crop_margin is not None and not (math.isfinite(args.crop_margin) and args.crop_margin <= 5.0):
+        raise EvaluationError(f"--crop-margin {args.crop_margin}: a margin in metres, at most 5")
     if args.classifiers < 1:
         raise EvaluationError(f"--classifiers {args.classifiers}: at least one classifier")
-    out = make_folder(args.output)  # an unwritable output fails before the evaluation, not after it
     synthetic_seed = EVAL_SEED if args.synthetic_seed is None else args.synthetic_seed
     if args.threads:
         torch.set_num_threads(args.threads)
     model_path = Path(args.model) if args.model else DEFAULT_WEIGHTS
     model, preprocessing = load_checkpoint(model_path)
+    if args.crop_margin is not None and args.crop_margin < preprocessing.crop_margin:
+        raise EvaluationError(f"--crop-margin {args.crop_margin}: narrower than the model's contract "
+                              f"({preprocessing.crop_margin} m)")
+    out = make_folder(args.output)  # an unwritable output fails before the evaluation, not after it
     meta = {k: v for k, v in read_checkpoint_metadata(model_path).items()
             if k not in ("format", "format_version", "config") and isinstance(v, (str, int, float))}
     shown = model_path.resolve()
@@ -125,7 +131,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
                                    max_frames_per_vehicle=args.max_frames_per_vehicle or None,
                                    max_vehicles=args.max_vehicles, max_batch=args.max_batch,
                                    sensors=tuple(args.sensors), random_points=args.random_reference_points,
-                                   noise=noise)
+                                   noise=noise, input_margin=args.crop_margin)
         emit(pandaset_section(result, num_control=model.config.num_control, num_input=model.config.num_input))
         write_renders(out, "pandaset_vehicles.png", result.examples)
         write_renders(out, "pandaset_worst.png", result.worst)
@@ -210,6 +216,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "kind alone (0.15 0 0 0: centre errors only)")
     parser.add_argument("--box-noise-seed", type=int, default=2024, help="seed of the box noise (default 2024)")
     parser.add_argument("--max-vehicles", type=int, default=None, help="first N stationary vehicles only")
+    parser.add_argument("--crop-margin", type=float, default=None, metavar="METRES",
+                        help="crop margin of the PandaSet inputs, exact and noisy boxes (default: the checkpoint's "
+                             "contract; only wider): the node's crop_margin; the references keep the contract's")
     parser.add_argument("--no-fusion", action="store_true", help="skip the PandaSet track-fusion part")
     parser.add_argument("--no-reuse", action="store_true", help="skip the PandaSet completion-reuse part")
     parser.add_argument("--reuse-frames", type=int, default=None,
