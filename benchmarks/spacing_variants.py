@@ -73,6 +73,17 @@ def print_consistency(model: GGDNet, root: str, variants: list[str]) -> None:
         print(f"{spec:18s} {rows}", flush=True)
 
 
+def merge_weights(text: str) -> tuple[float, float]:
+    """An argparse type: NETWORK:MIRROR weights of the merge, each in (0, 1]."""
+    try:
+        network, mirror = (float(w) for w in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: NETWORK:MIRROR, two numbers") from None
+    if not (0.0 < network <= 1.0 and 0.0 < mirror <= 1.0):
+        raise argparse.ArgumentTypeError(f"{text!r}: weights in (0, 1]")
+    return network, mirror
+
+
 def by_bucket(values: list[float], where: np.ndarray, bins: list[str]) -> str:
     v = np.array(values)
     return f"{v.mean():.3f} " + " ".join(f"{v[where == b].mean():.3f}" for b in bins)
@@ -86,7 +97,7 @@ def main() -> None:
     parser.add_argument("--heldout", type=int, default=128, help="held-out mesh pairs (as the evaluation)")
     parser.add_argument("--variants", nargs="*", default=["none", "5:0.3:0", "0:0.3:0.3", "5:0.3:0.3", "8:0.3:0.3",
                                                           "5:0.3:0.45", "exact:5:0.3:0.3"])
-    parser.add_argument("--merge-weights", nargs="*", default=[f"{NETWORK_WEIGHT}:{MIRROR_WEIGHT}"],
+    parser.add_argument("--merge-weights", nargs="+", type=merge_weights, default=[(NETWORK_WEIGHT, MIRROR_WEIGHT)],
                         help="NETWORK:MIRROR weights of the merge, one row per pair and variant")
     parser.add_argument("--consistency", action="store_true", help="also track fusion's consistency per variant")
     args = parser.parse_args()
@@ -104,21 +115,22 @@ def main() -> None:
     prior = [prior_outputs(with_band(p, b), s, raw.shape[1])["mirror_template"] for p, s, _, b in observations]
     prior_coverage = [nearest_sq(o[2], q).mean() * 1e3 for o, q in zip(observations, prior)]
     print(f"{'mirror + template':18s} {by_bucket(prior_coverage, where, bins)}")
-    weights = [tuple(float(w) for w in pair.split(":")) for pair in args.merge_weights]
+    weights: list[tuple[float, float]] = args.merge_weights
     for spec in args.variants:
         points, ms = spaced(spec, raw, graph)
         network = [nearest_sq(o[2], c).mean() * 1e3 for o, c in zip(observations, points)]
         h_points = spaced(spec, h_raw, h_graph)[0]
         for network_weight, mirror_weight in weights:
-            kw = {"network_weight": network_weight, "mirror_weight": mirror_weight}
-            merged = [merge_with_pool(c, p, band=b, **kw).points for c, (p, _, _, b) in zip(points, observations)]
+            merged = [merge_with_pool(c, p, band=b, network_weight=network_weight, mirror_weight=mirror_weight).points
+                      for c, (p, _, _, b) in zip(points, observations)]
             published = [nearest_sq(o[2], m).mean() * 1e3 for o, m in zip(observations, merged)]
             fidelity = [nearest_sq(o[0], m).mean() * 1e3 for o, m in zip(observations, merged)]
-            h_out = np.stack([merge_with_pool(c, p, **kw).points for c, p in zip(h_points, heldout.partial)])
+            h_out = np.stack([merge_with_pool(c, p, network_weight=network_weight, mirror_weight=mirror_weight).points
+                              for c, p in zip(h_points, heldout.partial)])
             row = _chamfer_row(h_out, heldout.complete)[0]
             (distance,) = distances_to_meshes([h_out], [v for v, _ in heldout.meshes], [f for _, f in heldout.meshes])
             label = spec if len(weights) == 1 else f"{spec} @{network_weight:g}:{mirror_weight:g}"
-            print(f"{label:18s} {by_bucket(network, where, bins)} | {by_bucket(published, where, bins)} | "
+            print(f"{label:22s} {by_bucket(network, where, bins)} | {by_bucket(published, where, bins)} | "
                   f"{by_bucket(fidelity, where, bins)} | {ms:.2f} || {row['cd']:.2f} {row['cd_dg']:.2f} "
                   f"{row['f_score']:.3f} {surface_shares(distance)[0]:.3f}", flush=True)
     if args.consistency:

@@ -180,6 +180,17 @@ def test_section_without_sets() -> None:
     assert "1 PointNet (" in text and ": 0.500." in text
 
 
+def test_an_empty_set_shows_dashes() -> None:
+    empty = {n: np.zeros((2, 0), np.int64) for n in cls.INPUT_NAMES}
+    result = cls.ClassificationResult([cls.ClassifierLog(2, {"car": 2}, 7, FAST, 0.1, 1.0, 0.5, "test")] * 2,
+                                      [0.5, 0.5], [cls.SetResult("held-out meshes", "test", "complete", [], empty,
+                                                                 {n: np.zeros((2, 0), bool) for n in empty})])
+    text = cls.classification_section(result)
+    table = text.split("their range in brackets):")[1].split("\n\n", 2)[1]
+    assert "nan" not in text and "No synthetic set was classified" in text
+    assert [_cells(line)[1] for line in table.splitlines()[2:]] == ["-"] * len(cls.INPUT_NAMES)
+
+
 def test_one_classifier_shows_plain_accuracies() -> None:
     truth = ["car", "car", "bus", "bus"]
     accepted = np.eye(len(cls.CLASSES), dtype=bool)[[cls.class_index(t) for t in truth]]
@@ -212,11 +223,18 @@ def test_evaluate_command_classification_part(tmp_path: Path, shared_data: Path,
     assert "## Completion for classification" in text and "synthetic shapes (n = 3)" in text
     assert "held-out meshes (n = 2)" in text and "PandaSet 002 (n =" not in text
     assert "- classification: " in text
-    assert parser.parse_args(common).classifiers == cls.CLASSIFIERS
-    bad = parser.parse_args(common + ["--output", str(tmp_path / "bad"), "--classifiers", "0"])
-    with pytest.raises(EvaluationError, match="at least one classifier"):
-        bad.func(bad)
-    assert not (tmp_path / "bad").exists()
+    assert f"{cls.CLASSIFIERS} PointNets (" in text and f"{cls.ClassifierSettings.epochs} epochs" in text
+    for extra, message in ((["--classifiers", "0"], "at least one"), (["--classifier-epochs", "0"], "at least one"),
+                           (["--classifiers", "2", "--no-classification"], "classification part is skipped")):
+        bad = parser.parse_args(common + ["--output", str(tmp_path / "bad"), *extra])
+        with pytest.raises(EvaluationError, match=message):
+            bad.func(bad)
+        assert not (tmp_path / "bad").exists()
+    args = parser.parse_args(common + ["--output", str(tmp_path / "two"), "--classifiers", "2",
+                                       "--classifier-epochs", "1"])
+    assert args.func(args) == 0
+    text = (tmp_path / "two" / "report.md").read_text()
+    assert "2 PointNets (" in text and "; 1 epochs," in text
     args = parser.parse_args(common + ["--output", str(tmp_path / "without"), "--no-classification"])
     assert args.func(args) == 0
     text = (tmp_path / "without" / "report.md").read_text()

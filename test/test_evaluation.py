@@ -256,6 +256,7 @@ def test_a_wider_input_margin_widens_the_inputs_not_the_references(shared_data):
             wider = {tuple(p) for p in other.points[k]}
             assert all(tuple(p) in wider for p in points)
             gained += len(other.points[k]) > len(points)
+            assert (track.noisy[k] is None) == (other.noisy[k] is None)   # the same noisy boxes are cropped
             if track.noisy[k] is not None and other.noisy[k] is not None:
                 assert other.noisy[k].box == track.noisy[k].box   # the same noisy box, cropped more widely
                 noisy_gained += len(other.noisy[k].normalized) > len(track.noisy[k].normalized)
@@ -263,6 +264,22 @@ def test_a_wider_input_margin_widens_the_inputs_not_the_references(shared_data):
     assert gained > 0 and noisy_gained > 0
     with pytest.raises(ValueError, match="the contract's"):
         collect_tracks(sequence, vehicles, prep, frames=frames, input_margin=0.05)
+
+
+def test_observations_and_pose_scans_follow_the_reference_crop():
+    """An entry is an observation by its reference's count (the contract's crop), not by its wider input's; the
+    visibility scans are the reference's points."""
+    from gd_completion.evaluation.pandaset_eval import MIN_INPUT_POINTS, VehicleTrack
+    from gd_completion.geometry import Box3D
+
+    box = Box3D((10.0, 0.0, 1.0), (4.0, 2.0, 1.5), 0.0, "car", 1)
+    rng = np.random.default_rng(0)
+    few, many = rng.normal(size=(MIN_INPUT_POINTS - 10, 3)), rng.normal(size=(MIN_INPUT_POINTS + 10, 3))
+    track = VehicleTrack("u", 1, "Car", frames=[0, 1], points=[many, many], boxes=[box, box], sensors=[0, 0],
+                         origins=[np.zeros(3), np.zeros(3)], reference=[few, many])
+    assert track.input_frames() == [1]
+    assert len(track.aggregate()) == len(few) + len(many)
+    assert all(any(scan is r for r in track.reference) for _, scan in track.pose_scans())
 
 
 # --- the evaluate command ----------------------------------------------------------------------------
@@ -536,13 +553,17 @@ def test_evaluate_command_crop_margin(tmp_path, shared_data):
         return next(line for line in table.splitlines() if line.startswith(f"| {title}"))
 
     # the references and the fidelity's points are the contract's: methods that ignore the input agree
-    for section in ("### Coverage error x1e3 (reference", "### Ground band kept: coverage"):
+    for section in ("### Coverage error x1e3 (reference", "### Ground band kept: coverage", "### Fidelity x1e3"):
         assert row(texts["contract"], section, "box fill") == row(texts["wide"], section, "box fill")
     # the inputs are wider: the raw input covers the reference at least as well, and differs
     assert row(texts["contract"], "### Coverage error x1e3 (reference", "raw input") != \
         row(texts["wide"], "### Coverage error x1e3 (reference", "raw input")
+    args = parser.parse_args(["evaluate", "--output", str(tmp_path / "same"), "--crop-margin", "0.1", *common])
+    assert args.func(args) == 0   # the contract's own margin: not called wider
+    assert "cropped with a margin" not in (tmp_path / "same" / "report.md").read_text()
     for bad, message in ((["--crop-margin", "0.05"], "narrower than the model's contract"),
-                         (["--crop-margin", "nan"], "a margin in metres")):
+                         (["--crop-margin", "nan"], "a margin in metres"),
+                         (["--crop-margin", "0.3", "--no-pandaset"], "the PandaSet part is skipped")):
         failed = tmp_path / f"failed_{bad[1]}"
         args = parser.parse_args(["evaluate", "--output", str(failed), *bad, *common])
         with pytest.raises(EvaluationError, match=message):

@@ -442,8 +442,10 @@ def evaluate_classification(model: GGDNet, *, mesh_dir: str | Path | None = None
     shapes drawn alike (VALIDATION_SEED; default a sixth of `train_samples`), and classify every input on the
     procedural held-out set (`synthetic_samples`), the held-out meshes (`mesh_samples`, needs `mesh_dir`) and
     PandaSet (`pandaset`, a sequence folder); a count of 0 or a missing folder skips a set (noted)."""
-    if classifiers < 1:
-        raise ValueError(f"classifiers={classifiers} must be >= 1")
+    if classifiers < 1 or (validation_samples is not None and validation_samples < 1):
+        raise ValueError(f"classifiers={classifiers} and validation_samples={validation_samples} must be >= 1")
+    if seed == VALIDATION_SEED:   # build_dataset seeds each shape by (seed, index)
+        raise ValueError(f"training seed {seed}: its shapes would be the validation shapes (seed {VALIDATION_SEED})")
     seconds: dict[str, float] = {}
     notes: list[str] = []
     t0 = time.perf_counter()
@@ -481,6 +483,8 @@ def evaluate_classification(model: GGDNet, *, mesh_dir: str | Path | None = None
 
 def _cell(values: np.ndarray) -> str:
     """A table cell: the mean over the classifiers, with their range when there are several."""
+    if not len(values) or np.isnan(values).all():
+        return "-"
     if len(values) < 2:
         return f"{float(np.mean(values)):.3f}"
     return f"{float(np.mean(values)):.3f} ({float(np.min(values)):.3f}-{float(np.max(values)):.3f})"
@@ -489,6 +493,8 @@ def _cell(values: np.ndarray) -> str:
 def _difference(s: SetResult, a: str, b: str) -> str:
     """Accuracy of input `a` minus input `b`: the mean over the classifiers, with their range when there are several."""
     d = s.accuracies(a) - s.accuracies(b)
+    if not len(d) or np.isnan(d).all():
+        return "-"
     mean = f"{float(np.mean(d)):+.3f}"
     return mean if len(d) < 2 else f"{mean} ({float(np.min(d)):+.3f} to {float(np.max(d)):+.3f})"
 
@@ -542,7 +548,7 @@ def classification_section(result: ClassificationResult) -> str:
             counts = s.counts()
             table = markdown_table(["input"] + [f"{k} ({v})" for k, v in counts.items()],
                                    [[INPUT_TITLES[n]] + list(s.per_class(n).values()) for n in INPUT_NAMES])
-            truth = np.tile(np.array(s.truth), len(logs))
+            truth = np.tile(np.array(s.truth), s.predicted["ggd_merge"].shape[0])
             predicted, correct = s.predicted["ggd_merge"].ravel(), s.correct["ggd_merge"].ravel()
             confusions = []
             for label in counts:
@@ -551,7 +557,7 @@ def classification_section(result: ClassificationResult) -> str:
                 if wrong:
                     confusions.append(f"{label} -> " + ", ".join(f"{c} {k}" for c, k in wrong.most_common(3)))
             parts.append(f"### Per-class accuracy: {s.name}\n\n{table}\n\nMisclassified (GGD-Net published"
-                         + (f", all {len(logs)} classifiers" if several else "") + "): "
+                         + (f", all {s.predicted['ggd_merge'].shape[0]} classifiers" if several else "") + "): "
                          + ("; ".join(confusions) if confusions else "none") + ".")
     else:
         parts.append("No set was classified.")

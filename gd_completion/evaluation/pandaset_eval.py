@@ -333,6 +333,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     if max_vehicles is not None:
         vehicles = dict(list(vehicles.items())[:max_vehicles])
     prep = replace(preprocessing or Preprocessing(), min_points=1)
+    if input_margin is not None and input_margin == prep.crop_margin:
+        input_margin = None   # the contract's own
     tracks = collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=noise,
                             input_margin=input_margin)
     seconds["load+crop"] = time.perf_counter() - t0
@@ -384,8 +386,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
         ref_random, ref_voxel, images = refs[track.uuid]
         outputs = _method_outputs(partial, track.bands[k], box.size, n_out, clean.generated[i], clean.raw[i],
                                    clean.completion[i], clean.published[i])
-        item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], len(partial),
-                            size_bin(len(partial)), {}, {})
+        seen = len(track.reference[k])   # the bucket: the contract's count, whatever the input margin
+        item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], seen, size_bin(seen), {}, {})
         low = in_ground_band(band_refs[track.uuid], box, prep.ground_clearance)   # the same for every method
         for name in BASELINE_NAMES:
             out = outputs[name]
@@ -447,7 +449,7 @@ def _examples(items: list[PandaSetItem], meta: list[tuple[VehicleTrack, int]], c
               ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
     """Up to `n` render items (title, input, published completion, voxel reference): each size bin in turn,
     one observation per vehicle, the vehicles with the largest aggregates first."""
-    order = sorted(range(len(items)), key=lambda i: -sum(len(p) for p in meta[i][0].points))
+    order = sorted(range(len(items)), key=lambda i: -sum(len(p) for p in meta[i][0].reference))
     chosen: list[int] = []
     seen: set[str] = set()
     for _ in range(n):

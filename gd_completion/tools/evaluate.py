@@ -5,6 +5,7 @@ import argparse
 import importlib.util
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from gd_completion.atomic import make_folder
@@ -43,8 +44,15 @@ def run_evaluation(args: argparse.Namespace) -> int:
     noise = None if args.no_box_noise else BoxNoise(*(args.box_noise or ()), seed=args.box_noise_seed)  # checked first
     if args.crop_margin is not None and not (math.isfinite(args.crop_margin) and args.crop_margin <= 5.0):
         raise EvaluationError(f"--crop-margin {args.crop_margin}: a margin in metres, at most 5")
-    if args.classifiers < 1:
-        raise EvaluationError(f"--classifiers {args.classifiers}: at least one classifier")
+    classifying = args.synthetic_samples > 0 and not args.no_classification
+    for name, value in (("--classifiers", args.classifiers), ("--classifier-epochs", args.classifier_epochs)):
+        if value is not None and not classifying:
+            raise EvaluationError(f"{name}: the classification part is skipped (--no-classification or "
+                                  "--synthetic-samples 0)")
+        if value is not None and value < 1:
+            raise EvaluationError(f"{name} {value}: at least one")
+    if args.crop_margin is not None and args.no_pandaset:
+        raise EvaluationError("--crop-margin: the PandaSet part is skipped (--no-pandaset)")
     synthetic_seed = EVAL_SEED if args.synthetic_seed is None else args.synthetic_seed
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -107,7 +115,12 @@ def run_evaluation(args: argparse.Namespace) -> int:
             timings.append(f"held-out meshes: data {built:.1f} s, evaluation {time.perf_counter() - t0 - built:.1f} s")
 
     if args.synthetic_samples > 0 and not args.no_classification:
-        from gd_completion.evaluation.classification import classification_section, evaluate_classification
+        from gd_completion.evaluation.classification import (
+            CLASSIFIERS,
+            ClassifierSettings,
+            classification_section,
+            evaluate_classification,
+        )
 
         t0 = time.perf_counter()
         classified = evaluate_classification(
@@ -115,7 +128,8 @@ def run_evaluation(args: argparse.Namespace) -> int:
             pandaset=None if args.no_pandaset else (args.pandaset or DEFAULT_PANDASET),
             train_samples=args.classification_train_samples, synthetic_samples=args.classification_samples,
             mesh_samples=args.heldout_mesh_samples, sensors=tuple(args.sensors), max_vehicles=args.max_vehicles,
-            classifiers=args.classifiers, max_batch=args.max_batch)
+            classifiers=args.classifiers or CLASSIFIERS, max_batch=args.max_batch,
+            settings=replace(ClassifierSettings(), epochs=args.classifier_epochs or ClassifierSettings.epochs))
         emit(classification_section(classified))
         steps = ", ".join(f"{k} {v:.1f} s" for k, v in classified.seconds.items())
         timings.append(f"classification: {time.perf_counter() - t0:.1f} s ({steps})")
@@ -235,9 +249,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="skip the downstream classification part (as does --synthetic-samples 0)")
     parser.add_argument("--classification-train-samples", type=int, default=2400,
                         help="complete shapes the part's PointNet classifier trains on (default 2400)")
-    parser.add_argument("--classifiers", type=int, default=3,
+    parser.add_argument("--classifiers", type=int, default=None,
                         help="classifiers trained (seeds in a row) and averaged in the classification part (default "
-                             "3: one classifier's accuracy moves by several points with its seed)")
+                             "3: one classifier's accuracy moves by several points with its seed; about 5 minutes "
+                             "each on one core)")
+    parser.add_argument("--classifier-epochs", type=int, default=None,
+                        help="epochs of each classifier's training (default 8)")
     parser.add_argument("--classification-samples", type=int, default=330,
                         help="procedural held-out shapes it classifies (default 330; the held-out meshes follow "
                         "--heldout-mesh-samples, PandaSet --pandaset)")
