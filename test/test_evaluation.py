@@ -489,9 +489,8 @@ def test_f_score_hand_computed():
     np.testing.assert_allclose(batch.numpy(), [0.5, 1.0])
 
 
-def test_evaluate_command_box_noise_sigmas(tmp_path, shared_data):
-    """`--box-noise` sets the box-noise run's sigmas: with all four at zero the noisy boxes are the true ones, so
-    every method's noisy coverage is its clean one; a negative or NaN sigma is a one-line error before any output."""
+def _tiny_pandaset_run(tmp_path, shared_data):
+    """(the evaluate command's parser, the arguments of a small PandaSet-only run of a tiny untrained model)."""
     import argparse
 
     from gd_completion.tools import evaluate
@@ -500,9 +499,15 @@ def test_evaluate_command_box_noise_sigmas(tmp_path, shared_data):
     model_path = save_checkpoint(tmp_path / "tiny.pt", GGDNet(TINY))
     parser = argparse.ArgumentParser()
     evaluate.register(parser.add_subparsers())
-    common = ["--model", str(model_path), "--synthetic-samples", "0", "--pandaset", str(shared_data / "pandaset-002"),
-              "--max-vehicles", "2", "--max-frames-per-vehicle", "2", "--threads", "1", "--no-fusion",
-              "--no-reuse", "--random-reference-points", "2000"]
+    return parser, ["--model", str(model_path), "--synthetic-samples", "0", "--pandaset",
+                    str(shared_data / "pandaset-002"), "--max-vehicles", "2", "--max-frames-per-vehicle", "2",
+                    "--threads", "1", "--no-fusion", "--no-reuse", "--random-reference-points", "2000"]
+
+
+def test_evaluate_command_box_noise_sigmas(tmp_path, shared_data):
+    """`--box-noise` sets the box-noise run's sigmas: with all four at zero the noisy boxes are the true ones, so
+    every method's noisy coverage is its clean one; a negative or NaN sigma is a one-line error before any output."""
+    parser, common = _tiny_pandaset_run(tmp_path, shared_data)
     out = tmp_path / "report"
     args = parser.parse_args(["evaluate", "--output", str(out), "--box-noise", "0", "0", "0", "0", *common])
     assert args.func(args) == 0
@@ -528,17 +533,8 @@ def test_evaluate_command_crop_margin(tmp_path, shared_data):
     """`--crop-margin` widens the PandaSet inputs only: the same observations and references (the band-kept and
     the fidelity tables' reference rows equal), the report says so; a margin narrower than the model's contract or
     not finite is a one-line error before any output."""
-    import argparse
-
-    from gd_completion.tools import evaluate
-
-    torch.manual_seed(0)
-    model_path = save_checkpoint(tmp_path / "tiny.pt", GGDNet(TINY))
-    parser = argparse.ArgumentParser()
-    evaluate.register(parser.add_subparsers())
-    common = ["--model", str(model_path), "--synthetic-samples", "0", "--pandaset", str(shared_data / "pandaset-002"),
-              "--max-vehicles", "2", "--max-frames-per-vehicle", "2", "--threads", "1", "--no-fusion",
-              "--no-reuse", "--random-reference-points", "2000", "--no-box-noise"]
+    parser, common = _tiny_pandaset_run(tmp_path, shared_data)
+    common.append("--no-box-noise")
     texts = {}
     for name, extra in (("contract", []), ("wide", ["--crop-margin", "0.3"])):
         args = parser.parse_args(["evaluate", "--output", str(tmp_path / name), *extra, *common])
