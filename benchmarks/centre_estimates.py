@@ -83,7 +83,8 @@ def face_gaps(annotated: list[Crop]) -> tuple[np.ndarray, np.ndarray]:
                     gaps[axis].append(half - hi)
                 elif sensor[axis] < lo:
                     gaps[axis].append(lo + half)
-    return np.percentile(gaps[0], [10, 50, 90]), np.percentile(gaps[1], [10, 50, 90])
+    along, across = (np.percentile(g, [10, 50, 90]) if g else np.full(3, np.nan) for g in gaps)
+    return along, across
 
 
 def faces_centre(crop: Crop, gaps: tuple[float, float]) -> np.ndarray:

@@ -114,7 +114,7 @@ def main() -> None:
           f"({len(heldout.partial)} pairs), published: CD, CD(D,G) x1e4, F-score@1 %, on the surface")
     prior = [prior_outputs(with_band(p, b), s, raw.shape[1])["mirror_template"] for p, s, _, b in observations]
     prior_coverage = [nearest_sq(o[2], q).mean() * 1e3 for o, q in zip(observations, prior)]
-    print(f"{'mirror + template':18s} {by_bucket(prior_coverage, where, bins)}")
+    print(f"{'mirror + template':22s} {by_bucket(prior_coverage, where, bins)}")
     weights: list[tuple[float, float]] = args.merge_weights
     for spec in args.variants:
         points, ms = spaced(spec, raw, graph)

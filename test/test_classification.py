@@ -180,6 +180,25 @@ def test_section_without_sets() -> None:
     assert "1 PointNet (" in text and ": 0.500." in text
 
 
+def test_bad_experiment_settings_are_refused_before_any_data() -> None:
+    model = GGDNet(TINY).eval()
+    for kwargs, message in (({"classifiers": 0}, "must be >= 1"), ({"validation_samples": 0}, "must be >= 1"),
+                            ({"seed": cls.VALIDATION_SEED}, "would be the validation shapes")):
+        with pytest.raises(ValueError, match=message):
+            cls.evaluate_classification(model, train_samples=4, synthetic_samples=0, mesh_samples=0, **kwargs)
+
+
+def test_confusions_count_every_classifier_of_the_arrays() -> None:
+    truth = ["car", "bus"]
+    accepted = np.eye(len(cls.CLASSES), dtype=bool)[[cls.class_index(t) for t in truth]]
+    predicted = {n: np.full((3, 2), cls.class_index("car")) for n in cls.INPUT_NAMES}   # three classifiers
+    correct = {n: accepted[np.arange(2), p] for n, p in predicted.items()}
+    log = cls.ClassifierLog(2, {"car": 2}, 7, FAST, 0.1, 1.0, 0.5, "test")
+    result = cls.ClassificationResult([log], [0.5], [cls.SetResult("synthetic shapes", "test", "complete", truth,
+                                                                   predicted, correct)])
+    assert "Misclassified (GGD-Net published): bus -> car 3." in cls.classification_section(result)
+
+
 def test_an_empty_set_shows_dashes() -> None:
     empty = {n: np.zeros((2, 0), np.int64) for n in cls.INPUT_NAMES}
     result = cls.ClassificationResult([cls.ClassifierLog(2, {"car": 2}, 7, FAST, 0.1, 1.0, 0.5, "test")] * 2,
@@ -224,8 +243,10 @@ def test_evaluate_command_classification_part(tmp_path: Path, shared_data: Path,
     assert "held-out meshes (n = 2)" in text and "PandaSet 002 (n =" not in text
     assert "- classification: " in text
     assert f"{cls.CLASSIFIERS} PointNets (" in text and f"{cls.ClassifierSettings.epochs} epochs" in text
+    skipped = "classification part is skipped"
     for extra, message in ((["--classifiers", "0"], "at least one"), (["--classifier-epochs", "0"], "at least one"),
-                           (["--classifiers", "2", "--no-classification"], "classification part is skipped")):
+                           (["--classifiers", "2", "--no-classification"], skipped),
+                           (["--classifier-epochs", "2", "--synthetic-samples", "0"], skipped)):
         bad = parser.parse_args(common + ["--output", str(tmp_path / "bad"), *extra])
         with pytest.raises(EvaluationError, match=message):
             bad.func(bad)

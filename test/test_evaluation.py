@@ -274,12 +274,35 @@ def test_observations_and_pose_scans_follow_the_reference_crop():
 
     box = Box3D((10.0, 0.0, 1.0), (4.0, 2.0, 1.5), 0.0, "car", 1)
     rng = np.random.default_rng(0)
-    few, many = rng.normal(size=(MIN_INPUT_POINTS - 10, 3)), rng.normal(size=(MIN_INPUT_POINTS + 10, 3))
-    track = VehicleTrack("u", 1, "Car", frames=[0, 1], points=[many, many], boxes=[box, box], sensors=[0, 0],
-                         origins=[np.zeros(3), np.zeros(3)], reference=[few, many])
-    assert track.input_frames() == [1]
+    few, many, extra = (rng.normal(size=(n, 3)) for n in (MIN_INPUT_POINTS - 10, MIN_INPUT_POINTS + 10, 20))
+    track = VehicleTrack("u", 1, "Car", frames=[0, 1], points=[np.vstack([few, extra]), np.vstack([many, extra])],
+                         boxes=[box, box], sensors=[0, 0], origins=[np.zeros(3), np.zeros(3)], reference=[few, many])
+    assert track.input_frames() == [1]   # the first entry's input has 60 points, its reference 40
     assert len(track.aggregate()) == len(few) + len(many)
-    assert all(any(scan is r for r in track.reference) for _, scan in track.pose_scans())
+    scans = track.pose_scans()
+    assert len(scans) == 1 and scans[0][1] is track.reference[1]
+
+
+def test_size_buckets_count_the_contracts_crop(shared_data, monkeypatch):
+    """An observation whose wider input crosses a bucket's edge (190 points in the contract's crop, 210 in the input)
+    stays in the contract's bucket."""
+    from gd_completion.evaluation import pandaset_eval as pe
+    from gd_completion.geometry import Box3D
+
+    rng = np.random.default_rng(3)
+    box = Box3D((10.0, 0.0, 1.0), (4.0, 2.0, 1.5), 0.0, "car", 7)
+    scale = np.array([0.5, 0.25, 0.18], np.float32)
+    reference = [(rng.uniform(-1, 1, (190, 3)) * scale).astype(np.float32) for _ in range(2)]
+    inputs = [np.vstack([r, (rng.uniform(-1, 1, (20, 3)) * scale).astype(np.float32)]) for r in reference]
+    track = pe.VehicleTrack("u", 7, "Car", frames=[0, 1], points=inputs, boxes=[box, box], sensors=[0, 0],
+                            origins=[np.zeros(3), np.zeros(3)], noisy=[None, None],
+                            bands=[np.zeros((0, 3), np.float32)] * 2, in_box=reference, reference=reference)
+    monkeypatch.setattr(pe, "stationary_vehicles", lambda *args, **kwargs: {"u": "Car"})
+    monkeypatch.setattr(pe, "collect_tracks", lambda *args, **kwargs: {"u": track})
+    torch.manual_seed(0)
+    result = pe.evaluate_pandaset(GGDNet(TINY).eval(), shared_data / "pandaset-002", noise=None,
+                                  random_points=300, reference_points=200)
+    assert [(i.n_points, i.size_bin) for i in result.items] == [(190, "50-200"), (190, "50-200")]
 
 
 # --- the evaluate command ----------------------------------------------------------------------------

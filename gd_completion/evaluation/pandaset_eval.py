@@ -46,7 +46,8 @@ def is_vehicle_class(label: str) -> bool:
 
 
 def size_bin(n_points: int) -> str:
-    """Name of the input-size bin of a vehicle with `n_points` input points ('' below the first bin)."""
+    """Name of the input-size bin of a vehicle with `n_points` points in the contract's crop ('' below the first
+    bin)."""
     for name, lo, hi in SIZE_BINS:
         if lo <= n_points < hi:
             return name
@@ -240,7 +241,8 @@ def random_reference(points: np.ndarray, n: int = RANDOM_REFERENCE_POINTS, seed:
 
 @dataclass
 class PandaSetItem:
-    """One (vehicle, frame, sensor) observation: input size and, per method, the scaled metrics.
+    """One (vehicle, frame, sensor) observation: its size (points in the contract's crop) and, per method, the scaled
+    metrics.
 
     coverage: random reference; coverage_voxel: voxel-uniform reference; coverage_band: random reference of every
     in-box point, ground band included, and band_coverage its points in the band only (NaN where it has none);

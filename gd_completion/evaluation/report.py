@@ -155,7 +155,8 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
              f"Normalised frame (vehicle length = 1). Every method without an input count of its own outputs "
              f"2,048 points (the model's N_o); raw input and mirror keep their own counts."
              + (f" Inputs (exact and noisy boxes) cropped with a margin of {result.input_margin:g} m, wider than the "
-                "model's contract; the references and the fidelity's in-box points keep the contract's."
+                "model's contract; the references, the fidelity's in-box points and the size buckets (counted in "
+                "the contract's crop) keep the contract's."
                 if result.input_margin is not None else "")]
     parts.append(f"### Coverage error x1e3 (reference -> output), random reference ({result.random_points:,} points)"
                  "\n\n" + _metric_table(items, "coverage", points=True))
