@@ -231,8 +231,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--box-noise-seed", type=int, default=2024, help="seed of the box noise (default 2024)")
     parser.add_argument("--max-vehicles", type=int, default=None, help="first N stationary vehicles only")
     parser.add_argument("--crop-margin", type=float, default=None, metavar="METRES",
-                        help="crop margin of the PandaSet inputs, exact and noisy boxes (default: the checkpoint's "
-                             "contract; only wider): the node's crop_margin; the references keep the contract's")
+                        help="crop margin of the single-frame PandaSet part's inputs, exact and noisy boxes (default: "
+                             "the checkpoint's contract; only wider): the node's crop_margin; the references, and the "
+                             "fusion, reuse and classification parts keep the contract's")
     parser.add_argument("--no-fusion", action="store_true", help="skip the PandaSet track-fusion part")
     parser.add_argument("--no-reuse", action="store_true", help="skip the PandaSet completion-reuse part")
     parser.add_argument("--reuse-frames", type=int, default=None,
