@@ -264,6 +264,8 @@ def test_a_wider_input_margin_widens_the_inputs_not_the_references(shared_data):
     assert gained > 0 and noisy_gained > 0
     with pytest.raises(ValueError, match="the contract's"):
         collect_tracks(sequence, vehicles, prep, frames=frames, input_margin=0.05)
+    with pytest.raises(ValueError, match=r"must be in \[0, 5\] metres"):
+        collect_tracks(sequence, vehicles, prep, frames=frames, input_margin=6.0)
 
 
 def test_observations_and_pose_scans_follow_the_reference_crop():

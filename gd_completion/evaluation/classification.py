@@ -386,7 +386,7 @@ class SetResult:
 
     def accuracy(self, name: str) -> float:
         """Mean over the classifiers of `accuracies` (NaN for no observation)."""
-        return float(self.correct[name].mean()) if self.n else float("nan")
+        return float(np.mean(self.accuracies(name))) if self.n else float("nan")
 
     def per_class(self, name: str) -> dict[str, float]:
         """Accuracy of input `name` per truth label (mean over the classifiers)."""
@@ -454,8 +454,7 @@ def evaluate_classification(model: GGDNet, *, mesh_dir: str | Path | None = None
         notes.append(f"mesh folder {mesh_dir} not found: trained on procedural shapes only, held-out meshes skipped")
     shapes, labels, where = training_shapes(train_samples, seed=seed, mesh_dir=meshes)
     n_checks = max(2, train_samples // 6) if validation_samples is None else validation_samples
-    checks, check_labels, _ = training_shapes(n_checks, seed=VALIDATION_SEED,
-                                              mesh_dir=meshes)
+    checks, check_labels, _ = training_shapes(n_checks, seed=VALIDATION_SEED, mesh_dir=meshes)
     seconds["training data"] = time.perf_counter() - t0
     trained = [train_classifier(shapes, labels, settings=settings, seed=seed + i, source=where)
                for i in range(classifiers)]

@@ -143,11 +143,11 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
     entry also keeps all its in-box points, the ground band below `prep.ground_clearance` included (`in_box`).
     `input_margin` (metres; default `prep.crop_margin`): the crop margin of the inputs, the exact and the noisy
     boxes' (`points`, `bands`, `noisy`); the references (`reference`, `in_box`) keep `prep`'s. It can only widen the
-    contract's (ValueError), so an entry's inputs hold its reference's points.
+    contract's (ValueError; `Preprocessing` bounds it above), so an entry's inputs hold its reference's points.
     """
-    if input_margin is not None and not prep.crop_margin <= input_margin <= 5.0:
-        raise ValueError(f"input margin {input_margin}: must be in [{prep.crop_margin} (the contract's), 5] metres")
     inputs = prep if input_margin is None else replace(prep, crop_margin=float(input_margin))
+    if not inputs.crop_margin >= prep.crop_margin:
+        raise ValueError(f"input margin {input_margin}: narrower than the contract's {prep.crop_margin} m")
     tracks = {uuid: VehicleTrack(uuid, sequence.track_ids.get(uuid, 0), label) for uuid, label in vehicles.items()}
     by_id = {t.instance_id: t for t in tracks.values()}
     eye, zero = np.eye(3), np.zeros(3)

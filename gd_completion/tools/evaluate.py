@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -42,8 +41,6 @@ def run_evaluation(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     noise = None if args.no_box_noise else BoxNoise(*(args.box_noise or ()), seed=args.box_noise_seed)  # checked first
-    if args.crop_margin is not None and not (math.isfinite(args.crop_margin) and args.crop_margin <= 5.0):
-        raise EvaluationError(f"--crop-margin {args.crop_margin}: a margin in metres, at most 5")
     classifying = args.synthetic_samples > 0 and not args.no_classification
     for name, value in (("--classifiers", args.classifiers), ("--classifier-epochs", args.classifier_epochs)):
         if value is not None and not classifying:
@@ -58,9 +55,14 @@ def run_evaluation(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     model_path = Path(args.model) if args.model else DEFAULT_WEIGHTS
     model, preprocessing = load_checkpoint(model_path)
-    if args.crop_margin is not None and args.crop_margin < preprocessing.crop_margin:
-        raise EvaluationError(f"--crop-margin {args.crop_margin}: narrower than the model's contract "
-                              f"({preprocessing.crop_margin} m)")
+    if args.crop_margin is not None:   # the contract's own checks, and only wider than it
+        try:
+            replace(preprocessing, crop_margin=args.crop_margin)
+        except ValueError as error:
+            raise EvaluationError(f"--crop-margin {args.crop_margin}: a margin in metres ({error})") from None
+        if args.crop_margin < preprocessing.crop_margin:
+            raise EvaluationError(f"--crop-margin {args.crop_margin}: narrower than the model's contract "
+                                  f"({preprocessing.crop_margin} m)")
     out = make_folder(args.output)  # an unwritable output fails before the evaluation, not after it
     meta = {k: v for k, v in read_checkpoint_metadata(model_path).items()
             if k not in ("format", "format_version", "config") and isinstance(v, (str, int, float))}
