@@ -52,20 +52,19 @@ class Crop:
     sensor: np.ndarray   # (3,) in `box`'s normalised frame
 
 
-def crops(sequence: PandaSetSequence, vehicles: dict[str, str], frames: list[int], noisy: bool) -> list[Crop]:
-    """The vehicles' crops of `frames` (both sensors), with their annotated or noisy boxes."""
+def crops(sequence: PandaSetSequence, vehicles: dict[str, str], frames: list[int]) -> dict[bool, list[Crop]]:
+    """The vehicles' crops of `frames` (both sensors), read once: by noisy (True) or annotated (False) box."""
     prep = replace(Preprocessing(), min_points=1)
-    out = []
+    out: dict[bool, list[Crop]] = {True: [], False: []}
     for track in collect_tracks(sequence, vehicles, prep, frames=frames, sensors=SENSORS, noise=BoxNoise()).values():
         for k, truth in enumerate(track.boxes):
             crop = track.noisy[k]
             if crop is None or len(track.points[k]) < MIN_INPUT_POINTS:
                 continue
-            points, box = (crop.normalized, crop.box) if noisy else (track.points[k], truth)
-            if len(points) < MIN_INPUT_POINTS:
-                continue
-            sensor = normalize(np.asarray(track.origins[k], np.float64)[None], box)[0]
-            out.append(Crop(np.asarray(points, np.float64), box, truth, sensor))
+            for noisy, (points, box) in ((True, (crop.normalized, crop.box)), (False, (track.points[k], truth))):
+                if len(points) >= MIN_INPUT_POINTS:
+                    sensor = normalize(np.asarray(track.origins[k], np.float64)[None], box)[0]
+                    out[noisy].append(Crop(np.asarray(points, np.float64), box, truth, sensor))
     return out
 
 
@@ -158,8 +157,9 @@ def main() -> None:
     model = load_model(args.model).eval()
     sequence = PandaSetSequence(args.pandaset)
     frames = list(sequence.frame_indices())[::args.every]
-    moving, parked = moving_vehicles(sequence, SENSORS), stationary_vehicles(sequence, SENSORS)
-    spread = face_gaps(crops(sequence, moving, frames, noisy=False))
+    groups = {"moving": crops(sequence, moving_vehicles(sequence, SENSORS), frames),
+              "stationary": crops(sequence, stationary_vehicles(sequence, SENSORS), frames)}
+    spread = face_gaps(groups["moving"][False])
     gaps = (float(spread[0][1]), float(spread[1][1]))   # the medians
     print("face gaps, moving vehicles' annotated boxes (10th / 50th / 90th percentile, m): along "
           + " / ".join(f"{g:.3f}" for g in spread[0]) + ", across " + " / ".join(f"{g:.3f}" for g in spread[1]))
@@ -167,9 +167,9 @@ def main() -> None:
     print(f"{'vehicles':<11}{'boxes':<10}{'crops':>6}" + "".join(f"{n:>16}" for n in ("given", "refiner", "faces",
                                                                                         "mean"))
           + "   heading RMS (deg): given / refiner / L-shape")
-    for kind, vehicles in (("moving", moving), ("stationary", parked)):
+    for kind, by_box in groups.items():
         for noisy in (True, False):
-            rows = crops(sequence, vehicles, frames, noisy)
+            rows = by_box[noisy]
             errors, headings = rms_errors(model, rows, gaps)
             print(f"{kind:<11}{'noisy' if noisy else 'annotated':<10}{len(rows):>6}"
                   + "".join(f"{e[0]:>9.3f} / {e[1]:.3f}" for e in errors.values())
