@@ -39,13 +39,12 @@ Merge = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], n
 
 
 def weighted(voxel: float, network: float, mirror: float) -> Merge:
+    """The merge's weighted FPS (`merge.merge_measured` with these weights) of a pool of the points above the ground
+    cut (one per `voxel` voxel; 0: all of them)."""
     def merge(completion: np.ndarray, partial: np.ndarray, fed: np.ndarray, size: np.ndarray,
               band: np.ndarray) -> np.ndarray:
         pool = partial[voxel_first_indices(partial, voxel)] if voxel else partial
-        union = np.ascontiguousarray(np.concatenate([pool, mirrored(pool), completion]), np.float32)
-        weights = np.full(len(union), network, np.float32)
-        weights[:len(pool)], weights[len(pool):2 * len(pool)] = 1.0, mirror
-        return union[fps_pruned(union, len(completion), weights=weights)]
+        return merge_measured(completion, pool, len(completion), network_weight=network, mirror_weight=mirror).points
     return merge
 
 
