@@ -34,7 +34,7 @@ from gd_completion.evaluation.mesh_distance import distances_to_meshes, surface_
 from gd_completion.evaluation.nearest import nearest_sq
 from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.evaluation.synthetic import _chamfer_row, load_heldout_meshes
-from gd_completion.merge import MIRROR_WEIGHT, NETWORK_WEIGHT, merge_with_pool
+from gd_completion.merge import MIRROR_WEIGHT, NETWORK_WEIGHT, check_weights, merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import with_band
@@ -74,13 +74,15 @@ def print_consistency(model: GGDNet, root: str, variants: list[str]) -> None:
 
 
 def merge_weights(text: str) -> tuple[float, float]:
-    """An argparse type: NETWORK:MIRROR weights of the merge, each in (0, 1]."""
+    """An argparse type: NETWORK:MIRROR weights of the merge (`merge.check_weights`)."""
     try:
         network, mirror = (float(w) for w in text.split(":"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: NETWORK:MIRROR, two numbers") from None
-    if not (0.0 < network <= 1.0 and 0.0 < mirror <= 1.0):
-        raise argparse.ArgumentTypeError(f"{text!r}: weights in (0, 1]")
+    try:
+        check_weights(network, mirror)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{text!r}: {error}") from None
     return network, mirror
 
 

@@ -50,6 +50,12 @@ def mirrored(points: np.ndarray) -> np.ndarray:
     return np.asarray(points, np.float32) * np.array([1.0, -1.0, 1.0], np.float32)
 
 
+def check_weights(network_weight: float, mirror_weight: float) -> None:
+    """ValueError unless both weights of the merge's FPS are in (0, 1] (the measured points weigh 1)."""
+    if not (0.0 < network_weight <= 1.0 and 0.0 < mirror_weight <= 1.0):
+        raise ValueError(f"merge weights must be in (0, 1]: network {network_weight}, mirror {mirror_weight}")
+
+
 def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None = None, *,
                    network_weight: float = NETWORK_WEIGHT, mirror_weight: float = MIRROR_WEIGHT) -> Merged:
     """Weighted farthest point sampling (see the module; the measured points weigh 1) of the union of `measured`
@@ -65,8 +71,7 @@ def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None =
         raise ValueError(f"cannot keep {n} of {len(union)} points")
     if not np.isfinite(union).all():
         raise ValueError("merge_measured: non-finite points")
-    if not (0.0 < network_weight <= 1.0 and 0.0 < mirror_weight <= 1.0):
-        raise ValueError(f"merge weights must be in (0, 1]: network {network_weight}, mirror {mirror_weight}")
+    check_weights(network_weight, mirror_weight)
     weights = np.full(len(union), network_weight, np.float32)
     weights[:len(measured)] = 1.0
     weights[len(measured):2 * len(measured)] = mirror_weight
