@@ -49,7 +49,7 @@ def main() -> None:
     indices = sequence.frame_indices()[:args.frames]
     loaded = load_frames(sequence, set(vehicle_tracks(sequence)), replace(Preprocessing(), min_points=1),
                          frames=indices)
-    frames = [(sequence.stamp_ns(i), vehicles) for i, vehicles in loaded]
+    frames = [(sequence.stamp_ns(i), vehicles) for i, vehicles, _ in loaded]
     n_vehicles = sum(len(v) for _, v in frames)
     align_planar(np.random.default_rng(0).random((64, 3)), np.random.default_rng(1).random((64, 3)))  # compile
     print(f"PandaSet-002, Pandar64, {len(frames)} frames, {n_vehicles} vehicle-frames "

@@ -192,3 +192,58 @@ def test_evaluate_no_fusion_skips_the_section(tmp_path, shared_data):
     assert args.func(args) == 0
     text = (tmp_path / "out" / "report.md").read_text()
     assert "## PandaSet 002: single frame" in text and "track fusion" not in text
+
+
+def test_a_wider_input_crop_feeds_the_fusion_and_keeps_the_contracts_references(shared_data):
+    """`input_margin`: what the fusion is fed is cropped wider (as the node's crop_margin), the references, the
+    points counted and so the vehicle-frames scored stay the contract's; narrower than the contract is refused."""
+    root = shared_data / "pandaset-002"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    plain = fusion_eval.fuse_drive(root, frames=range(0, 5), fusion_factory=ConcatFusion)
+    wide = fusion_eval.fuse_drive(root, frames=range(0, 5), fusion_factory=ConcatFusion, input_margin=0.4)
+    assert set(wide.tracks) == set(plain.tracks) and plain.tracks
+    more = 0
+    for i, track in plain.tracks.items():
+        other = wide.tracks[i]
+        assert other.frames == track.frames
+        for p in range(len(track.frames)):
+            np.testing.assert_array_equal(other.references[p], track.single[p])   # the contract's crop
+            assert track.references[p] is track.single[p]
+            assert len(other.single[p]) >= len(track.single[p])
+            more += len(other.single[p]) > len(track.single[p])
+            assert other.usable(p) == track.usable(p)
+            # the fusion got the wide crops: the concatenating double's partial is every wide frame so far
+            assert len(other.fused[p]) == sum(len(s) for s in other.single[:p + 1])
+        np.testing.assert_array_equal(other.aggregate(), track.aggregate())
+    assert more > 0
+    with pytest.raises(ValueError, match="narrower than the contract"):
+        fusion_eval.fuse_drive(root, frames=range(0, 2), input_margin=0.05)
+
+
+def test_completion_reuse_scores_a_wider_input_crop_on_the_same_vehicle_frames(shared_data):
+    """evaluate_reuse(input_margin=): the same vehicle-frames and references, the baseline fed the wider crops,
+    and the report says so."""
+    from gd_completion.evaluation.reuse_eval import evaluate_reuse, reuse_section
+    from gd_completion.pipeline import VehicleCompleter
+    from gd_completion.preprocess import Preprocessing
+    from gd_completion.reuse import ReuseSettings
+
+    root = shared_data / "pandaset-002"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    torch.manual_seed(0)
+    model = GGDNet(TINY).eval()
+    results = {}
+    for margin in (None, 0.4):
+        prep = Preprocessing(crop_margin=0.1 if margin is None else margin)
+        results[margin] = evaluate_reuse(root, lambda ids, reuse, prep=prep: VehicleCompleter(
+            model, preprocessing=prep, track_ids=ids, reuse=ReuseSettings() if reuse else None),
+            frames=3, input_margin=margin)
+    plain, wide = results[None], results[0.4]
+    assert wide.input_margin == 0.4 and plain.input_margin is None
+    assert (wide.vehicle_frames, wide.coverage_items) == (plain.vehicle_frames, plain.coverage_items)
+    assert plain.coverage_items > 0
+    assert wide.rows[-1].coverage != plain.rows[-1].coverage   # the baseline saw the wider crops
+    assert "cropped with a margin of 0.4 m" in reuse_section(wide)
+    assert "cropped with a margin" not in reuse_section(plain)

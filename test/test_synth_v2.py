@@ -1,6 +1,7 @@
 """Generator version 2: sampling options, detector-box noise, mesh split, new kinds, patterns and sensor effects."""
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 
@@ -396,3 +397,33 @@ def test_v2_workers_match_serial(shared_data):
     np.testing.assert_array_equal(serial["partial"], parallel["partial"])
     np.testing.assert_array_equal(serial["complete"], parallel["complete"])
     np.testing.assert_array_equal(serial["box_noise"], parallel["box_noise"])
+
+
+def _beyond_box(partial: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """Per point of a normalised partial, how far (m) it lies outside its box along x or y (0 inside)."""
+    half = np.asarray(size, np.float64)[:2] / 2
+    return (np.abs(partial[:, :2].astype(np.float64)) * size[0] - half).max(1).clip(min=0.0)
+
+
+def test_crop_margin_max_draws_each_samples_margin_and_crops_with_it():
+    opts = SampleOptions(box_noise_prob=1.0, box_center_sigma=0.3, crop_margin_max=0.5)
+    margins, beyond = [], []
+    for i in range(8):
+        partial, _, meta = make_sample(sample_rng(5, i), "sedan", pattern="pandar64", n_input=512, n_gt=256,
+                                       options=opts)
+        margins.append(meta["crop_margin"])
+        beyond.append(_beyond_box(partial, meta["size"]).max())
+        assert beyond[-1] <= meta["crop_margin"] + 1e-4   # cropped with its own margin, not a wider one
+    assert all(0.1 <= m <= 0.5 for m in margins) and np.ptp(margins) > 0.1
+    assert max(beyond) > 0.1 + 1e-3                     # a wider crop let in what the contract's would drop
+    # off (0, or not above the contract's margin): the contract's crop, drawing nothing
+    plain = SampleOptions(box_noise_prob=1.0, box_center_sigma=0.3)
+    for off in (0.0, 0.1):
+        a = make_sample(sample_rng(5, 0), "sedan", pattern="pandar64", n_input=128, n_gt=64,
+                        options=dataclasses.replace(plain, crop_margin_max=off))
+        b = make_sample(sample_rng(5, 0), "sedan", pattern="pandar64", n_input=128, n_gt=64, options=plain)
+        np.testing.assert_array_equal(a[0], b[0])
+        assert a[2]["crop_margin"] == 0.1
+    for bad in (-0.1, 6.0, float("nan")):
+        with pytest.raises(ValueError, match="crop_margin_max"):
+            SampleOptions(crop_margin_max=bad)

@@ -21,6 +21,7 @@ from .pandaset_eval import (
     MIN_INPUT_POINTS,
     PANDAR64,
     REFERENCE_POINTS,
+    input_preprocessing,
     is_vehicle_class,
     multi_frame_reference,
     stationary_vehicles,
@@ -41,7 +42,8 @@ class Fusion(Protocol):
 @dataclass
 class FusedTrack:
     """One vehicle through the drive (Pandar64, causal order): per frame it is seen in, the frame's own
-    normalised points and (within the frame cap) the fused partial TrackFusion returned."""
+    normalised points (as cropped for the network, and as the contract crops them for the reference) and (within
+    the frame cap) the fused partial TrackFusion returned."""
 
     uuid: str
     instance_id: int
@@ -52,15 +54,19 @@ class FusedTrack:
     fused: list[np.ndarray] = field(default_factory=list)   # normalised fused partial, first `max_frames` frames
     sizes: list[tuple[float, ...]] = field(default_factory=list)  # box (length, width, height) per frame
     bands: list[np.ndarray] = field(default_factory=list)  # the frame's ground-band points (`CroppedVehicle.band`)
+    # per frame the contract's crop (normalised): `single`'s arrays unless the inputs were cropped wider
+    references: list[np.ndarray] = field(default_factory=list)
 
     def aggregate(self) -> np.ndarray:
-        """All frames' points in the box frame (normalised): the multi-frame reference."""
-        return np.concatenate(self.single).astype(np.float32, copy=False) if self.single else \
+        """All frames' points in the box frame (normalised), as the contract crops them: the multi-frame
+        reference."""
+        return np.concatenate(self.references).astype(np.float32, copy=False) if self.references else \
             np.zeros((0, 3), np.float32)
 
     def usable(self, position: int, min_points: int = MIN_INPUT_POINTS) -> bool:
-        """True when the vehicle has >= `min_points` points in the frame at `position` itself."""
-        return len(self.single[position]) >= min_points
+        """True when the vehicle has >= `min_points` points in the frame at `position` itself (counted in the
+        contract's crop, so every input margin scores the same vehicle-frames)."""
+        return len(self.references[position]) >= min_points
 
 
 
@@ -206,10 +212,14 @@ def vehicle_tracks(sequence: PandaSetSequence, sensor: int = PANDAR64) -> dict[s
 
 
 def load_frames(sequence: PandaSetSequence, uuids: set[str], prep: Preprocessing, sensor: int = PANDAR64,
-                frames: Sequence[int] | None = None) -> list[tuple[int, list[CroppedVehicle]]]:
-    """(frame, cropped vehicles of `uuids`) per frame in time order; world-frame boxes and points."""
+                frames: Sequence[int] | None = None, input_margin: float | None = None
+                ) -> list[tuple[int, list[CroppedVehicle], list[CroppedVehicle]]]:
+    """(frame, vehicles of `uuids` cropped for the network, the same cropped by the contract `prep`) per frame in
+    time order; world-frame boxes and points. `input_margin` (`pandaset_eval.input_preprocessing`): the first
+    list's crop margin, wider than the contract's (None: the contract's, and both lists are the same)."""
+    inputs = input_preprocessing(prep, input_margin)
     eye, zero = np.eye(3), np.zeros(3)
-    out: list[tuple[int, list[CroppedVehicle]]] = []
+    out: list[tuple[int, list[CroppedVehicle], list[CroppedVehicle]]] = []
     for index in (sequence.frame_indices() if frames is None else frames):
         records: dict[str, dict] = {}
         for r in sequence.cuboids(index):
@@ -222,7 +232,10 @@ def load_frames(sequence: PandaSetSequence, uuids: set[str], prep: Preprocessing
             continue
         arrays = sequence.load_lidar(index)
         points = arrays["xyz"][arrays["sensor"] == sensor]
-        out.append((int(index), crop_vehicles(points[finite_mask(points)], boxes, prep)[0]))
+        points = points[finite_mask(points)]
+        references = crop_vehicles(points, boxes, prep)[0]
+        out.append((int(index), references if inputs is prep else crop_vehicles(points, boxes, inputs)[0],
+                    references))
     return out
 
 
@@ -247,10 +260,12 @@ class FusedDrive:
 
 def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles: int | None = None,
                preprocessing: Preprocessing | None = None, frames: Sequence[int] | None = None,
-               fusion_factory: Callable[[], Fusion] | None = None) -> FusedDrive:
+               fusion_factory: Callable[[], Fusion] | None = None, input_margin: float | None = None) -> FusedDrive:
     """Feed PandaSet's vehicles (Pandar64, time order) frame by frame to a fresh fusion, each vehicle's first
     `max_frames` frames (None: all); `max_vehicles`: the first N stationary and first N moving vehicles with
-    >= MIN_INPUT_POINTS points in one frame. `fusion_factory`: default `gd_completion.fusion.TrackFusion`."""
+    >= MIN_INPUT_POINTS points in one frame. `fusion_factory`: default `gd_completion.fusion.TrackFusion`.
+    `input_margin`: the crop margin of what the fusion is fed (the node's `crop_margin`; `load_frames`); the
+    references and the points counted keep the contract's crop."""
     if fusion_factory is None:
         from gd_completion.fusion import TrackFusion
         fusion_factory = TrackFusion
@@ -260,17 +275,20 @@ def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles:
     sequence = PandaSetSequence(root)
     kinds = vehicle_tracks(sequence)
     prep = replace(preprocessing or Preprocessing(), min_points=1)
-    loaded = load_frames(sequence, set(kinds), prep, frames=frames)
+    loaded = load_frames(sequence, set(kinds), prep, frames=frames, input_margin=input_margin)
     ids = {sequence.track_ids.get(u, 0): u for u in kinds}
     tracks = {i: FusedTrack(u, i, *kinds[u]) for i, u in ids.items()}
-    for index, vehicles in loaded:
-        for vehicle in vehicles:
+    empty = np.zeros((0, 3), np.float32)
+    for index, vehicles, references in loaded:
+        by_id = {v.box.instance_id: v.normalized for v in references}
+        for vehicle in vehicles:   # a wider crop can hold a vehicle the contract's does not: no reference points
             track = tracks[vehicle.box.instance_id]
             track.frames.append(index)
             track.single.append(vehicle.normalized)
+            track.references.append(by_id.get(vehicle.box.instance_id, empty))
             track.sizes.append(vehicle.box.size)
             track.bands.append(vehicle.band)
-    seen = [t for t in tracks.values() if any(len(p) >= MIN_INPUT_POINTS for p in t.single)]
+    seen = [t for t in tracks.values() if any(t.usable(p) for p in range(len(t.frames)))]
     chosen = {t.instance_id: t for group in (True, False)
               for t in [t for t in seen if t.stationary == group][:max_vehicles]}
     seconds["load+crop"] = time.perf_counter() - t0
@@ -278,7 +296,7 @@ def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles:
     t1 = time.perf_counter()
     fusion = fusion_factory()
     dropped = 0
-    for index, vehicles in loaded:
+    for index, vehicles, _ in loaded:
         fed = [v for v in vehicles if v.box.instance_id in chosen
                and (max_frames is None or len(chosen[v.box.instance_id].fused) < max_frames)]
         if not fed:
@@ -296,7 +314,8 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
                     max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS, max_batch: int = 32,
                     preprocessing: Preprocessing | None = None, frames: Sequence[int] | None = None,
                     fusion_factory: Callable[[], Fusion] | None = None,
-                    spacing: SpacingSettings | None = SHIPPED_SPACING) -> FusionResult:
+                    spacing: SpacingSettings | None = SHIPPED_SPACING, input_margin: float | None = None
+                    ) -> FusionResult:
     """Feed PandaSet's vehicles frame by frame to TrackFusion and complete the fused partials.
 
     Coverage (stationary vehicles seen in >= 2 frames, reference = all frames' points): the raw fused points,
@@ -304,12 +323,12 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     all of them); at k = RATIO_FRAMES also `library_oracle` with the other stationary vehicles' references.
     Consistency (stationary and moving): Chamfer between completions in consecutive frames among the first
     `consistency_frames` frames of each vehicle, frames with >= MIN_INPUT_POINTS points only.
-    `max_vehicles`, `frames`, `fusion_factory`: as `fuse_drive`; `spacing`: the completions' even spacing (as
-    `published_outputs`; None: off).
+    `max_vehicles`, `frames`, `fusion_factory`, `input_margin`: as `fuse_drive`; `spacing`: the completions' even
+    spacing (as `published_outputs`; None: off).
     """
     max_frames = None if max_frames is None else max(1, max_frames)
     drive = fuse_drive(root, max_frames=max_frames, max_vehicles=max_vehicles, preprocessing=preprocessing,
-                       frames=frames, fusion_factory=fusion_factory)
+                       frames=frames, fusion_factory=fusion_factory, input_margin=input_margin)
     chosen, dropped, seconds = drive.tracks, drive.dropped, dict(drive.seconds)
 
     t2 = time.perf_counter()
@@ -332,6 +351,10 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     t3 = time.perf_counter()
     notes = [f"TrackFusion returned no fused partial for {dropped} vehicle-frames (their own frame was used)"] \
         if dropped else []
+    if input_margin is not None:
+        notes.append(f"inputs (each frame's crop fed to the fusion and to the single-frame completion) cropped with "
+                     f"a margin of {input_margin:g} m, as the node's crop_margin; references and the vehicle-frames "
+                     "scored keep the model's contract")
     counters = drive.counters
     if "frames_aligned" in counters:
         aligned, refused = counters["frames_aligned"], counters["alignments_refused"]

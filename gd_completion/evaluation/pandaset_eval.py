@@ -129,6 +129,16 @@ def stationary_vehicles(sequence: PandaSetSequence, sensor: int | Sequence[int] 
     return vehicle_tracks(sequence, sensor, stationary_only=True)
 
 
+def input_preprocessing(prep: Preprocessing, input_margin: float | None) -> Preprocessing:
+    """The contract `prep` with the inputs' crop margin `input_margin` (None: the contract's own). ValueError when
+    it is narrower than the contract's (an input would then miss its reference's points) or out of the contract's
+    bounds."""
+    inputs = prep if input_margin is None else replace(prep, crop_margin=float(input_margin))
+    if not inputs.crop_margin >= prep.crop_margin:
+        raise ValueError(f"input margin {input_margin}: narrower than the contract's {prep.crop_margin} m")
+    return inputs
+
+
 def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: Preprocessing, *,
                    frames: Sequence[int] | None = None, sensors: Sequence[int] = (PANDAR64,),
                    noise: BoxNoise | None = None, noise_min_points: int = MIN_INPUT_POINTS,
@@ -145,9 +155,7 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
     boxes' (`points`, `bands`, `noisy`); the references (`reference`, `in_box`) keep `prep`'s. It can only widen the
     contract's (ValueError; `Preprocessing` bounds it above), so an entry's inputs hold its reference's points.
     """
-    inputs = prep if input_margin is None else replace(prep, crop_margin=float(input_margin))
-    if not inputs.crop_margin >= prep.crop_margin:
-        raise ValueError(f"input margin {input_margin}: narrower than the contract's {prep.crop_margin} m")
+    inputs = input_preprocessing(prep, input_margin)
     tracks = {uuid: VehicleTrack(uuid, sequence.track_ids.get(uuid, 0), label) for uuid, label in vehicles.items()}
     by_id = {t.instance_id: t for t in tracks.values()}
     eye, zero = np.eye(3), np.zeros(3)

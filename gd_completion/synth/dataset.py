@@ -62,6 +62,10 @@ class SampleOptions:
     deviation (m) of the ground returns' heights (uneven road; with a noisy box, ground returns leak into the
     crop above the ground cut). tilt_deg: standard deviation of the sensor's roll and pitch (the scene turns
     about the sensor, ground plane included; the box stays yaw-only, as a detector's).
+
+    crop_margin_max: when above the preprocessing's crop_margin, each sample is cropped with a margin drawn
+    uniformly between the two (the node's wider `crop_margin` for detector boxes: the data then holds the ends a
+    noisy box cuts off and the clutter a wider crop lets in); otherwise the contract's margin, drawing nothing.
     """
 
     kinds: tuple[str, ...] = BASE_KINDS
@@ -79,6 +83,7 @@ class SampleOptions:
     range_dropout: float = 0.0
     ground_roughness: float = 0.0
     tilt_deg: float = 0.0
+    crop_margin_max: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "kinds", tuple(self.kinds))
@@ -100,6 +105,8 @@ class SampleOptions:
                      "box_size_sigma", "box_yaw_sigma_deg"):
             if not 0.0 <= getattr(self, name) < 100.0:
                 raise ValueError(f"SampleOptions.{name} must be non-negative, got {getattr(self, name)}")
+        if not (np.isfinite(self.crop_margin_max) and 0.0 <= self.crop_margin_max <= 5.0):
+            raise ValueError(f"SampleOptions.crop_margin_max must be in [0, 5] metres, got {self.crop_margin_max}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (tuples as lists); `from_dict` reads it back."""
@@ -259,7 +266,8 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
     meta["box_noise"] the (7,) error (centre offset, size factors, yaw offset; see `_box_noise`) of the box
     against the vehicle's (centre meta["true_center"], heading meta["yaw"]); meta["tilt"] the sensor's
     (roll, pitch) in degrees; meta["sensor_heading"] the heading (deg) of a forward-facing pattern, which is
-    turned towards the vehicle give or take half its field of view (so vehicles near the edge are cut).
+    turned towards the vehicle give or take half its field of view (so vehicles near the edge are cut);
+    meta["crop_margin"] the margin the scan was cropped with (see SampleOptions.crop_margin_max).
     """
     opts = options or V1_SAMPLING
     if pattern is None:
@@ -271,6 +279,8 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
         patterns = [BeamPattern.named(names[int(rng.integers(len(names)))])]
     pat = patterns[0]
     prep = preprocessing or Preprocessing()
+    if opts.crop_margin_max > prep.crop_margin:
+        prep = dataclasses.replace(prep, crop_margin=float(rng.uniform(prep.crop_margin, opts.crop_margin_max)))
     margin = prep.crop_margin
     for attempt in range(max_attempts):
         if attempt % 10 == 0:
@@ -317,7 +327,7 @@ def make_sample(rng: np.random.Generator, shape_source: str | Mesh | Sequence[Me
             "size": box_size.astype(np.float32), "true_size": size.astype(np.float32),
             "box_noise": noise.astype(np.float32), "occluded": occluder is not None, "attempts": attempt + 1,
             "sensor_heading": float(heading), "tilt": tilt_angles.astype(np.float32),
-            "true_center": centre.astype(np.float32)}
+            "true_center": centre.astype(np.float32), "crop_margin": margin}
     if surface_resample:
         meta["surface_resample"] = normalize(sample_surface(world, n_gt, rng), box).astype(np.float32)
     if surface_mesh:

@@ -21,7 +21,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
     import torch
 
     from gd_completion.evaluation.box_noise import BoxNoise
-    from gd_completion.evaluation.pandaset_eval import evaluate_pandaset
+    from gd_completion.evaluation.pandaset_eval import evaluate_pandaset, input_preprocessing
     from gd_completion.evaluation.report import (
         ablation_section,
         fusion_section,
@@ -165,7 +165,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
             fused = evaluate_fusion(model, pandaset, preprocessing=preprocessing, max_frames=args.fusion_max_frames,
                                     consistency_frames=args.fusion_consistency_frames,
                                     max_vehicles=args.fusion_max_vehicles, max_batch=args.max_batch,
-                                    fusion_factory=lambda: TrackFusion(
+                                    input_margin=args.crop_margin, fusion_factory=lambda: TrackFusion(
                                         FusionLimits(align=None) if args.no_fusion_align else FusionLimits()))
             emit(fusion_section(fused))
             steps = ", ".join(f"{k} {v:.1f} s" for k, v in fused.seconds.items())
@@ -178,9 +178,11 @@ def run_evaluation(args: argparse.Namespace) -> int:
 
             t0 = time.perf_counter()
             threads = torch.get_num_threads()
+            inputs = input_preprocessing(preprocessing, args.crop_margin)   # the completers crop as the node would
             reused = evaluate_reuse(pandaset, lambda ids, reuse: VehicleCompleter(
-                model, preprocessing=preprocessing, limits=OFFLINE_LIMITS, track_ids=ids,
-                reuse=ReuseSettings() if reuse else None), preprocessing=preprocessing, frames=args.reuse_frames)
+                model, preprocessing=inputs, limits=OFFLINE_LIMITS, track_ids=ids,
+                reuse=ReuseSettings() if reuse else None), preprocessing=preprocessing, frames=args.reuse_frames,
+                input_margin=args.crop_margin)
             torch.set_num_threads(threads)
             emit(reuse_section(reused))
             steps = ", ".join(f"{k} {v:.1f} s" for k, v in reused.seconds.items())
@@ -233,9 +235,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--box-noise-seed", type=int, default=2024, help="seed of the box noise (default 2024)")
     parser.add_argument("--max-vehicles", type=int, default=None, help="first N stationary vehicles only")
     parser.add_argument("--crop-margin", type=float, default=None, metavar="METRES",
-                        help="crop margin of the single-frame PandaSet part's inputs, exact and noisy boxes (default: "
-                             "the checkpoint's contract; only wider): the node's crop_margin; the references, and the "
-                             "fusion, reuse and classification parts keep the contract's")
+                        help="crop margin of the PandaSet parts' inputs (single frames with exact and noisy boxes, "
+                             "track fusion, completion reuse; default: the checkpoint's contract; only wider): the "
+                             "node's crop_margin; the references and the classification part keep the contract's")
     parser.add_argument("--no-fusion", action="store_true", help="skip the PandaSet track-fusion part")
     parser.add_argument("--no-reuse", action="store_true", help="skip the PandaSet completion-reuse part")
     parser.add_argument("--reuse-frames", type=int, default=None,
