@@ -66,7 +66,8 @@ SETTINGS: dict[str, Setting] = {
                              "checkpoint's preprocessing (20 for the shipped weights).", 0, 1_000_000, live=True),
     "crop_margin": Setting(-1.0, "Metres added to each side of a box when cropping its points; -1 = the checkpoint's "
                                  "preprocessing (0.1 for the shipped weights). With a detector's boxes 0.2 keeps the "
-                                 "ends a box cuts off (docs/MODEL.md).", -1.0, 5.0, live=True),
+                                 "ends a box cuts off; with exact boxes it costs frame-to-frame consistency "
+                                 "(docs/MODEL.md).", -1.0, 5.0, live=True),
     "labels": Setting(list(DEFAULT_LABELS), f"Labels to complete (of {sorted(LABEL_IDS)}).", live=True),
     "class_preset": Setting(DEFAULT_PRESET, "Detector classes -> labels: names (KITTI, nuScenes and Autoware class "
                                             "names; numeric ids unmapped), kitti, nuscenes, autoware or "

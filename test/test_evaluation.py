@@ -590,3 +590,22 @@ def test_evaluate_command_crop_margin(tmp_path, shared_data):
         with pytest.raises(EvaluationError, match=message):
             args.func(args)
         assert not failed.exists()
+
+
+@pytest.mark.integration  # reads the shared drive at length
+def test_evaluate_command_crop_margin_reaches_fusion_and_reuse(tmp_path, shared_data):
+    """`--crop-margin` is passed to the track-fusion and reuse parts too (their reports say so); the contract's own
+    margin is not reported as wider anywhere."""
+    parser, common = _tiny_pandaset_run(tmp_path, shared_data)
+    common = [a for a in common if a not in ("--no-fusion", "--no-reuse")]
+    common += ["--no-box-noise", "--fusion-max-vehicles", "1", "--fusion-max-frames", "2",
+               "--fusion-consistency-frames", "2", "--reuse-frames", "2"]
+    for margin, said in (("0.3", True), ("0.1", False)):
+        out = tmp_path / f"m{margin}"
+        args = parser.parse_args(["evaluate", "--output", str(out), "--crop-margin", margin, *common])
+        assert args.func(args) == 0
+        text = (out / "report.md").read_text()
+        fusion = text.split("## PandaSet 002: track fusion")[1].split("## PandaSet 002: completion reuse")[0]
+        reuse = text.split("## PandaSet 002: completion reuse")[1]
+        for section in (fusion, reuse):
+            assert (f"a margin of {margin} m" in section) == said

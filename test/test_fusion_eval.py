@@ -221,6 +221,7 @@ def test_a_wider_input_crop_feeds_the_fusion_and_keeps_the_contracts_references(
         fusion_eval.fuse_drive(root, frames=range(0, 2), input_margin=0.05)
 
 
+@pytest.mark.integration  # reads the shared drive at length
 def test_completion_reuse_scores_a_wider_input_crop_on_the_same_vehicle_frames(shared_data):
     """evaluate_reuse(input_margin=): the same vehicle-frames and references, the baseline fed the wider crops,
     and the report says so."""

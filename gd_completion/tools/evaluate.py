@@ -63,6 +63,8 @@ def run_evaluation(args: argparse.Namespace) -> int:
         if args.crop_margin < preprocessing.crop_margin:
             raise EvaluationError(f"--crop-margin {args.crop_margin}: narrower than the model's contract "
                                   f"({preprocessing.crop_margin} m)")
+    # the PandaSet parts' input margin: None for the contract's own (then not reported as wider)
+    input_margin = None if args.crop_margin in (None, preprocessing.crop_margin) else args.crop_margin
     out = make_folder(args.output)  # an unwritable output fails before the evaluation, not after it
     meta = {k: v for k, v in read_checkpoint_metadata(model_path).items()
             if k not in ("format", "format_version", "config") and isinstance(v, (str, int, float))}
@@ -147,7 +149,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
                                    max_frames_per_vehicle=args.max_frames_per_vehicle or None,
                                    max_vehicles=args.max_vehicles, max_batch=args.max_batch,
                                    sensors=tuple(args.sensors), random_points=args.random_reference_points,
-                                   noise=noise, input_margin=args.crop_margin)
+                                   noise=noise, input_margin=input_margin)
         emit(pandaset_section(result, num_control=model.config.num_control, num_input=model.config.num_input))
         write_renders(out, "pandaset_vehicles.png", result.examples)
         write_renders(out, "pandaset_worst.png", result.worst)
@@ -165,7 +167,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
             fused = evaluate_fusion(model, pandaset, preprocessing=preprocessing, max_frames=args.fusion_max_frames,
                                     consistency_frames=args.fusion_consistency_frames,
                                     max_vehicles=args.fusion_max_vehicles, max_batch=args.max_batch,
-                                    input_margin=args.crop_margin, fusion_factory=lambda: TrackFusion(
+                                    input_margin=input_margin, fusion_factory=lambda: TrackFusion(
                                         FusionLimits(align=None) if args.no_fusion_align else FusionLimits()))
             emit(fusion_section(fused))
             steps = ", ".join(f"{k} {v:.1f} s" for k, v in fused.seconds.items())
@@ -178,11 +180,11 @@ def run_evaluation(args: argparse.Namespace) -> int:
 
             t0 = time.perf_counter()
             threads = torch.get_num_threads()
-            inputs = input_preprocessing(preprocessing, args.crop_margin)   # the completers crop as the node would
+            inputs = input_preprocessing(preprocessing, input_margin)   # the completers crop as the node would
             reused = evaluate_reuse(pandaset, lambda ids, reuse: VehicleCompleter(
                 model, preprocessing=inputs, limits=OFFLINE_LIMITS, track_ids=ids,
                 reuse=ReuseSettings() if reuse else None), preprocessing=preprocessing, frames=args.reuse_frames,
-                input_margin=args.crop_margin)
+                input_margin=input_margin)
             torch.set_num_threads(threads)
             emit(reuse_section(reused))
             steps = ", ".join(f"{k} {v:.1f} s" for k, v in reused.seconds.items())
