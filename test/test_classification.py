@@ -261,3 +261,16 @@ def test_evaluate_command_classification_part(tmp_path: Path, shared_data: Path,
     text = (tmp_path / "without" / "report.md").read_text()
     assert "Completion for classification" not in text and "classification:" not in text
     capsys.readouterr()
+
+
+def test_evaluate_help_states_the_classification_defaults() -> None:
+    """The command's help repeats the defaults as text (the module is imported only when the part runs): they are
+    the module's own."""
+    from gd_completion.tools import evaluate
+
+    parser = argparse.ArgumentParser()
+    evaluate.register(parser.add_subparsers())
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["evaluate"]
+    helps = {a.option_strings[0]: a.help for a in sub._actions if a.option_strings}
+    assert f"(default {cls.CLASSIFIERS}:" in helps["--classifiers"]
+    assert f"(default {cls.ClassifierSettings.epochs})" in helps["--classifier-epochs"]
