@@ -593,9 +593,19 @@ def test_evaluate_command_crop_margin(tmp_path, shared_data):
 
 
 @pytest.mark.integration  # reads the shared drive at length
-def test_evaluate_command_crop_margin_reaches_fusion_and_reuse(tmp_path, shared_data):
-    """`--crop-margin` is passed to the track-fusion and reuse parts too (their reports say so); the contract's own
-    margin is not reported as wider anywhere."""
+def test_evaluate_command_crop_margin_reaches_fusion_and_reuse(tmp_path, shared_data, monkeypatch):
+    """`--crop-margin` is passed to the track-fusion and reuse parts too (the reuse part's completers crop with it;
+    both reports say so); the contract's own margin is not reported as wider anywhere."""
+    from gd_completion import pipeline
+
+    margins = []
+
+    class Recording(pipeline.VehicleCompleter):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            margins.append(self.preprocessing.crop_margin)
+
+    monkeypatch.setattr(pipeline, "VehicleCompleter", Recording)
     parser, common = _tiny_pandaset_run(tmp_path, shared_data)
     common = [a for a in common if a not in ("--no-fusion", "--no-reuse")]
     common += ["--no-box-noise", "--fusion-max-vehicles", "1", "--fusion-max-frames", "2",
@@ -609,3 +619,5 @@ def test_evaluate_command_crop_margin_reaches_fusion_and_reuse(tmp_path, shared_
         reuse = text.split("## PandaSet 002: completion reuse")[1]
         for section in (fusion, reuse):
             assert (f"a margin of {margin} m" in section) == said
+        assert margins == [float(margin)] * 3   # fresh, reuse by ids, reuse by association
+        margins.clear()

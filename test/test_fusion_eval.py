@@ -219,6 +219,18 @@ def test_a_wider_input_crop_feeds_the_fusion_and_keeps_the_contracts_references(
     assert more > 0
     with pytest.raises(ValueError, match="narrower than the contract"):
         fusion_eval.fuse_drive(root, frames=range(0, 2), input_margin=0.05)
+    # a box whose points all lie beyond the contract's crop is not fed at all (these frames hold such boxes at 2 m)
+    sequence = fusion_eval.PandaSetSequence(root)
+    uuids = set(fusion_eval.vehicle_tracks(sequence))
+    prep = fusion_eval.Preprocessing(min_points=1)
+    loaded = fusion_eval.load_frames(sequence, uuids, prep, frames=range(0, 5), input_margin=2.0)
+    wider = 0
+    for _, inputs, references in loaded:
+        assert [v.box.instance_id for v in inputs] == [v.box.instance_id for v in references]
+        wider += sum(len(i.normalized) > len(r.normalized) for i, r in zip(inputs, references))
+    assert wider > 0
+    unfiltered = fusion_eval.load_frames(sequence, uuids, replace(prep, crop_margin=2.0), frames=range(0, 5))
+    assert sum(len(v) for _, v, _ in unfiltered) > sum(len(v) for _, v, _ in loaded)   # such boxes exist here
 
 
 @pytest.mark.integration  # reads the shared drive at length

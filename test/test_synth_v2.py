@@ -416,14 +416,15 @@ def test_crop_margin_max_draws_each_samples_margin_and_crops_with_it():
         assert beyond[-1] <= meta["crop_margin"] + 1e-4   # cropped with its own margin, not a wider one
     assert all(0.1 <= m <= 0.5 for m in margins) and np.ptp(margins) > 0.1
     assert max(beyond) > 0.1 + 1e-3                     # a wider crop let in what the contract's would drop
-    # off (0, or not above the contract's margin): the contract's crop, drawing nothing
+    # not above the contract's margin: the contract's crop, drawing nothing (off, 0, is the version-1 digests' case)
     plain = SampleOptions(box_noise_prob=1.0, box_center_sigma=0.3)
-    for off in (0.0, 0.1):
-        a = make_sample(sample_rng(5, 0), "sedan", pattern="pandar64", n_input=128, n_gt=64,
-                        options=dataclasses.replace(plain, crop_margin_max=off))
-        b = make_sample(sample_rng(5, 0), "sedan", pattern="pandar64", n_input=128, n_gt=64, options=plain)
-        np.testing.assert_array_equal(a[0], b[0])
-        assert a[2]["crop_margin"] == 0.1
+    a = make_sample(sample_rng(5, 0), "sedan", pattern="pandar64", n_input=128, n_gt=64,
+                    options=dataclasses.replace(plain, crop_margin_max=0.1))
+    b = make_sample(sample_rng(5, 0), "sedan", pattern="pandar64", n_input=128, n_gt=64, options=plain)
+    np.testing.assert_array_equal(a[0], b[0])
+    assert a[2]["crop_margin"] == 0.1
+    # off: absent from the dict the data sets' cache keys are made of, as before the option existed
+    assert "crop_margin_max" not in plain.to_dict() and opts.to_dict()["crop_margin_max"] == 0.5
     for bad in (-0.1, 6.0, float("nan")):
         with pytest.raises(ValueError, match="crop_margin_max"):
             SampleOptions(crop_margin_max=bad)

@@ -54,7 +54,7 @@ class FusedTrack:
     fused: list[np.ndarray] = field(default_factory=list)   # normalised fused partial, first `max_frames` frames
     sizes: list[tuple[float, ...]] = field(default_factory=list)  # box (length, width, height) per frame
     bands: list[np.ndarray] = field(default_factory=list)  # the frame's ground-band points (`CroppedVehicle.band`)
-    # per frame the contract's crop (normalised): `single`'s arrays unless the inputs were cropped wider
+    # per frame, as `single`, the contract's crop (normalised): `single`'s arrays unless the inputs were cropped wider
     references: list[np.ndarray] = field(default_factory=list)
 
     def aggregate(self) -> np.ndarray:
@@ -215,8 +215,9 @@ def load_frames(sequence: PandaSetSequence, uuids: set[str], prep: Preprocessing
                 frames: Sequence[int] | None = None, input_margin: float | None = None
                 ) -> list[tuple[int, list[CroppedVehicle], list[CroppedVehicle]]]:
     """(frame, vehicles of `uuids` cropped for the network, the same cropped by the contract `prep`) per frame in
-    time order; world-frame boxes and points. `input_margin` (`pandaset_eval.input_preprocessing`): the first
-    list's crop margin, wider than the contract's (None: the contract's, and both lists are the same)."""
+    time order, the two lists in the same order; world-frame boxes and points. `input_margin`
+    (`pandaset_eval.input_preprocessing`): the first list's crop margin, wider than the contract's (None or the
+    contract's: both lists are the same); a vehicle the contract's crop does not hold is left out of both."""
     inputs = input_preprocessing(prep, input_margin)
     eye, zero = np.eye(3), np.zeros(3)
     out: list[tuple[int, list[CroppedVehicle], list[CroppedVehicle]]] = []
@@ -234,8 +235,11 @@ def load_frames(sequence: PandaSetSequence, uuids: set[str], prep: Preprocessing
         points = arrays["xyz"][arrays["sensor"] == sensor]
         points = points[finite_mask(points)]
         references = crop_vehicles(points, boxes, prep)[0]
-        out.append((int(index), references if inputs is prep else crop_vehicles(points, boxes, inputs)[0],
-                    references))
+        if inputs is prep:
+            out.append((int(index), references, references))
+            continue
+        held = [v.box for v in references]   # the same boxes, so a wider crop holds each of them too
+        out.append((int(index), crop_vehicles(points, held, inputs)[0], references))
     return out
 
 
@@ -278,14 +282,12 @@ def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles:
     loaded = load_frames(sequence, set(kinds), prep, frames=frames, input_margin=input_margin)
     ids = {sequence.track_ids.get(u, 0): u for u in kinds}
     tracks = {i: FusedTrack(u, i, *kinds[u]) for i, u in ids.items()}
-    empty = np.zeros((0, 3), np.float32)
     for index, vehicles, references in loaded:
-        by_id = {v.box.instance_id: v.normalized for v in references}
-        for vehicle in vehicles:   # a wider crop can hold a vehicle the contract's does not: no reference points
+        for vehicle, reference in zip(vehicles, references, strict=True):
             track = tracks[vehicle.box.instance_id]
             track.frames.append(index)
             track.single.append(vehicle.normalized)
-            track.references.append(by_id.get(vehicle.box.instance_id, empty))
+            track.references.append(reference.normalized)
             track.sizes.append(vehicle.box.size)
             track.bands.append(vehicle.band)
     seen = [t for t in tracks.values() if any(t.usable(p) for p in range(len(t.frames)))]
@@ -351,7 +353,8 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     t3 = time.perf_counter()
     notes = [f"TrackFusion returned no fused partial for {dropped} vehicle-frames (their own frame was used)"] \
         if dropped else []
-    if input_margin is not None:
+    contract = preprocessing or Preprocessing()
+    if input_preprocessing(contract, input_margin) is not contract:
         notes.append(f"inputs (each frame's crop fed to the fusion and to the single-frame completion) cropped with "
                      f"a margin of {input_margin:g} m, as the node's crop_margin; references and the vehicle-frames "
                      "scored keep the model's contract")

@@ -130,10 +130,11 @@ def stationary_vehicles(sequence: PandaSetSequence, sensor: int | Sequence[int] 
 
 
 def input_preprocessing(prep: Preprocessing, input_margin: float | None) -> Preprocessing:
-    """The contract `prep` with the inputs' crop margin `input_margin` (None: the contract's own). ValueError when
-    it is narrower than the contract's (an input would then miss its reference's points) or out of the contract's
-    bounds."""
-    inputs = prep if input_margin is None else replace(prep, crop_margin=float(input_margin))
+    """The contract `prep` with the inputs' crop margin `input_margin`: `prep` itself for None or the contract's own
+    margin (so `is prep` tells a wider crop). ValueError when it is narrower than the contract's (an input would then
+    miss its reference's points) or out of the contract's bounds."""
+    same = input_margin is None or input_margin == prep.crop_margin
+    inputs = prep if same else replace(prep, crop_margin=float(input_margin))
     if not inputs.crop_margin >= prep.crop_margin:
         raise ValueError(f"input margin {input_margin}: narrower than the contract's {prep.crop_margin} m")
     return inputs

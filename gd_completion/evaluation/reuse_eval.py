@@ -16,7 +16,12 @@ from gd_completion.evaluation.association_eval import AssociationResult, associa
 from gd_completion.evaluation.fusion_eval import FusedTrack, fuse_drive
 from gd_completion.evaluation.metrics import CD_SCALE, COVERAGE_SCALE
 from gd_completion.evaluation.nearest import nearest_sq
-from gd_completion.evaluation.pandaset_eval import MIN_INPUT_POINTS, REFERENCE_POINTS, multi_frame_reference
+from gd_completion.evaluation.pandaset_eval import (
+    MIN_INPUT_POINTS,
+    REFERENCE_POINTS,
+    input_preprocessing,
+    multi_frame_reference,
+)
 from gd_completion.evaluation.priors import mirror_template
 from gd_completion.geometry import normalize
 from gd_completion.preprocess import Preprocessing
@@ -121,7 +126,10 @@ def evaluate_reuse(root: str | Path, completer_factory: Callable[[str, bool], An
         rows.append(ReuseRow(run.name, run.runs, run.reused, run.seconds, _mean(cover) * COVERAGE_SCALE,
                              _mean(steady[True]) * CD_SCALE, _mean(steady[False]) * CD_SCALE))
     seconds["metrics"] = time.perf_counter() - t1
-    return ReuseResult(rows, len(usable), len(covered), association_agreement(root), seconds, input_margin)
+    contract = preprocessing or Preprocessing()
+    wider = input_preprocessing(contract, input_margin) is not contract
+    return ReuseResult(rows, len(usable), len(covered), association_agreement(root), seconds,
+                       input_margin if wider else None)
 
 
 def prior_run(tracks: dict[int, FusedTrack], keys: set[tuple[int, int]]) -> ReuseRun:

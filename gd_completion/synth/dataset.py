@@ -109,8 +109,12 @@ class SampleOptions:
             raise ValueError(f"SampleOptions.crop_margin_max must be in [0, 5] metres, got {self.crop_margin_max}")
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (tuples as lists); `from_dict` reads it back."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        """JSON-ready dict (tuples as lists); `from_dict` reads it back. crop_margin_max is left out when off, so data
+        sets made before it existed keep their cache keys."""
+        data = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        if not data["crop_margin_max"]:
+            del data["crop_margin_max"]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SampleOptions:
