@@ -133,8 +133,9 @@ def input_preprocessing(prep: Preprocessing, input_margin: float | None) -> Prep
     """The contract `prep` with the inputs' crop margin `input_margin`: `prep` itself for None or the contract's own
     margin (so `is prep` tells a wider crop). ValueError when it is narrower than the contract's (an input would then
     miss its reference's points) or out of the contract's bounds."""
-    same = input_margin is None or input_margin == prep.crop_margin
-    inputs = prep if same else replace(prep, crop_margin=float(input_margin))
+    if input_margin is None or input_margin == prep.crop_margin:
+        return prep
+    inputs = replace(prep, crop_margin=float(input_margin))
     if not inputs.crop_margin >= prep.crop_margin:
         raise ValueError(f"input margin {input_margin}: narrower than the contract's {prep.crop_margin} m")
     return inputs
