@@ -25,6 +25,7 @@ from .pandaset_eval import (
     is_vehicle_class,
     multi_frame_reference,
     stationary_vehicles,
+    wider_margin,
 )
 from .priors import PRIOR_POINTS, mirror_template
 
@@ -353,10 +354,10 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     t3 = time.perf_counter()
     notes = [f"TrackFusion returned no fused partial for {dropped} vehicle-frames (their own frame was used)"] \
         if dropped else []
-    contract = preprocessing or Preprocessing()
-    if input_preprocessing(contract, input_margin) is not contract:
+    wider = wider_margin(preprocessing or Preprocessing(), input_margin)
+    if wider is not None:
         notes.append(f"inputs (each frame's crop fed to the fusion and to the single-frame completion) cropped with "
-                     f"a margin of {input_margin:g} m, as the node's crop_margin; references and the vehicle-frames "
+                     f"a margin of {wider:g} m, as the node's crop_margin; references and the vehicle-frames "
                      "scored keep the model's contract")
     counters = drive.counters
     if "frames_aligned" in counters:

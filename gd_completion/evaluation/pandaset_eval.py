@@ -141,6 +141,12 @@ def input_preprocessing(prep: Preprocessing, input_margin: float | None) -> Prep
     return inputs
 
 
+def wider_margin(prep: Preprocessing, input_margin: float | None) -> float | None:
+    """`input_margin` when it widens the contract `prep`'s crop, else None (the contract's own); checked as
+    `input_preprocessing` checks it. What the reports call a wider crop."""
+    return None if input_preprocessing(prep, input_margin) is prep else input_margin
+
+
 def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: Preprocessing, *,
                    frames: Sequence[int] | None = None, sensors: Sequence[int] = (PANDAR64,),
                    noise: BoxNoise | None = None, noise_min_points: int = MIN_INPUT_POINTS,
@@ -176,7 +182,7 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
             points = arrays["xyz"][arrays["sensor"] == sensor]
             points = points[finite_mask(points)]
             cropped = crop_vehicles(points, boxes, prep)[0]
-            given = cropped if inputs == prep else crop_vehicles(points, boxes, inputs)[0]
+            given = cropped if inputs is prep else crop_vehicles(points, boxes, inputs)[0]
             entered = {v.box.instance_id: v for v in given}
             in_box = {v.box.instance_id: v.normalized
                       for v in crop_vehicles(points, boxes, replace(prep, ground_clearance=0.0, min_points=1))[0]}
@@ -345,8 +351,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     if max_vehicles is not None:
         vehicles = dict(list(vehicles.items())[:max_vehicles])
     prep = replace(preprocessing or Preprocessing(), min_points=1)
-    if input_margin is not None and input_margin == prep.crop_margin:
-        input_margin = None   # the contract's own
+    input_margin = wider_margin(prep, input_margin)
     tracks = collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=noise,
                             input_margin=input_margin)
     seconds["load+crop"] = time.perf_counter() - t0

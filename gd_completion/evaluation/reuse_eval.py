@@ -19,8 +19,8 @@ from gd_completion.evaluation.nearest import nearest_sq
 from gd_completion.evaluation.pandaset_eval import (
     MIN_INPUT_POINTS,
     REFERENCE_POINTS,
-    input_preprocessing,
     multi_frame_reference,
+    wider_margin,
 )
 from gd_completion.evaluation.priors import mirror_template
 from gd_completion.geometry import normalize
@@ -126,10 +126,8 @@ def evaluate_reuse(root: str | Path, completer_factory: Callable[[str, bool], An
         rows.append(ReuseRow(run.name, run.runs, run.reused, run.seconds, _mean(cover) * COVERAGE_SCALE,
                              _mean(steady[True]) * CD_SCALE, _mean(steady[False]) * CD_SCALE))
     seconds["metrics"] = time.perf_counter() - t1
-    contract = preprocessing or Preprocessing()
-    wider = input_preprocessing(contract, input_margin) is not contract
     return ReuseResult(rows, len(usable), len(covered), association_agreement(root), seconds,
-                       input_margin if wider else None)
+                       wider_margin(preprocessing or Preprocessing(), input_margin))
 
 
 def prior_run(tracks: dict[int, FusedTrack], keys: set[tuple[int, int]]) -> ReuseRun:

@@ -21,7 +21,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
     import torch
 
     from gd_completion.evaluation.box_noise import BoxNoise
-    from gd_completion.evaluation.pandaset_eval import evaluate_pandaset, input_preprocessing
+    from gd_completion.evaluation.pandaset_eval import evaluate_pandaset, input_preprocessing, wider_margin
     from gd_completion.evaluation.report import (
         ablation_section,
         fusion_section,
@@ -63,8 +63,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
         if args.crop_margin < preprocessing.crop_margin:
             raise EvaluationError(f"--crop-margin {args.crop_margin}: narrower than the model's contract "
                                   f"({preprocessing.crop_margin} m)")
-    # the PandaSet parts' input margin: None for the contract's own (then not reported as wider)
-    input_margin = None if args.crop_margin in (None, preprocessing.crop_margin) else args.crop_margin
+    input_margin = wider_margin(preprocessing, args.crop_margin)   # the PandaSet parts' (None: the contract's)
     out = make_folder(args.output)  # an unwritable output fails before the evaluation, not after it
     meta = {k: v for k, v in read_checkpoint_metadata(model_path).items()
             if k not in ("format", "format_version", "config") and isinstance(v, (str, int, float))}
