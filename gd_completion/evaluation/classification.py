@@ -480,22 +480,21 @@ def evaluate_classification(model: GGDNet, *, mesh_dir: str | Path | None = None
     return ClassificationResult([log for _, log in trained], validation, sets, seconds, notes)
 
 
-def _cell(values: np.ndarray) -> str:
-    """A table cell: the mean over the classifiers, with their range when there are several."""
+def _cell(values: np.ndarray, signed: bool = False) -> str:
+    """A table cell of per-classifier values: their mean, with their range when there are several ("-" for none);
+    `signed` (differences) shows the signs and "to" between the range's ends."""
     if not len(values) or np.isnan(values).all():
         return "-"
+    form, between = ("{:+.3f}", " to ") if signed else ("{:.3f}", "-")
+    mean = form.format(float(np.mean(values)))
     if len(values) < 2:
-        return f"{float(np.mean(values)):.3f}"
-    return f"{float(np.mean(values)):.3f} ({float(np.min(values)):.3f}-{float(np.max(values)):.3f})"
+        return mean
+    return f"{mean} ({form.format(float(np.min(values)))}{between}{form.format(float(np.max(values)))})"
 
 
 def _difference(s: SetResult, a: str, b: str) -> str:
-    """Accuracy of input `a` minus input `b`: the mean over the classifiers, with their range when there are several."""
-    d = s.accuracies(a) - s.accuracies(b)
-    if not len(d) or np.isnan(d).all():
-        return "-"
-    mean = f"{float(np.mean(d)):+.3f}"
-    return mean if len(d) < 2 else f"{mean} ({float(np.min(d)):+.3f} to {float(np.max(d)):+.3f})"
+    """Accuracy of input `a` minus input `b` (`_cell` of the per-classifier differences)."""
+    return _cell(s.accuracies(a) - s.accuracies(b), signed=True)
 
 
 def _summary(result: ClassificationResult) -> str:
