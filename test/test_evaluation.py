@@ -1,6 +1,8 @@
 """Evaluation: metrics against hand-computed values, baselines, PandaSet aggregates, a tiny evaluate run."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -183,6 +185,18 @@ def test_reference_sample_is_voxel_uniform():
     assert small.shape == (256, 3)
 
 
+def test_the_band_near_a_side_is_within_the_zone_of_the_left_or_right_side():
+    from gd_completion.evaluation.pandaset_eval import near_a_side
+    from gd_completion.geometry import Box3D
+
+    box = Box3D(center=(0.0, 0.0, 0.0), size=(4.0, 2.0, 1.5), yaw=0.3)
+    # metres across: 1.0 (at the side), 0.65 (0.35 inside), 0.55 (0.45 inside), 0 (the middle), -0.7 (the other side)
+    across = np.array([1.0, 0.65, 0.55, 0.0, -0.7]) / 4.0
+    points = np.stack([np.zeros(5), across, np.full(5, -0.18)], axis=1).astype(np.float32)
+    assert near_a_side(points, box).tolist() == [True, True, False, False, True]
+    assert near_a_side(points, box, zone=0.5).tolist() == [True, True, True, False, True]
+
+
 def test_size_bins():
     from gd_completion.evaluation.pandaset_eval import size_bin
 
@@ -194,7 +208,7 @@ def test_size_bins():
 
 def test_pandaset_aggregate_of_a_parked_vehicle(shared_data):
     from gd_completion.datasets.pandaset import PandaSetSequence
-    from gd_completion.evaluation.pandaset_eval import collect_tracks, stationary_vehicles
+    from gd_completion.evaluation.pandaset_eval import collect_tracks, in_ground_band, stationary_vehicles
     from gd_completion.preprocess import Preprocessing
 
     root = shared_data / "pandaset-002"
@@ -230,6 +244,19 @@ def test_pandaset_aggregate_of_a_parked_vehicle(shared_data):
     others = np.concatenate(track_many.points[1:])
     rms_m = float(metrics.fidelity(first, others)) ** 0.5 * length
     assert rms_m < 0.04
+
+    # The band-kept reference (`in_box`) is the exact box: the contract's crop reaches 0.1 m past it (points there,
+    # road beside the vehicle among them), `in_box` does not; it holds the crop's in-box points and the band's.
+    past_the_box = 0
+    for box, inside, cropped in zip(track_many.boxes, track_many.in_box, track_many.reference):
+        half = np.array(box.size) / 2 / box.size[0] + 1e-5
+        assert len(inside) and np.all(np.abs(inside) <= half)
+        within = np.all(np.abs(cropped) <= half, axis=1)
+        past_the_box += int((~within).sum())
+        assert len(inside) >= int(within.sum())
+    assert past_the_box > 0
+    assert any(in_ground_band(inside, box, prep.ground_clearance).any()
+               for track in few.values() for box, inside in zip(track.boxes, track.in_box))
 
 
 def test_a_wider_input_margin_widens_the_inputs_not_the_references(shared_data):
@@ -364,15 +391,18 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     assert "## Held-out meshes" in text and "held-out meshes of vehicle-meshes" in text
     pandaset = text.split("## PandaSet 002: single")[1].split("## PandaSet 002: track fusion")[0]
     pandaset_rows = [line for line in pandaset.splitlines() if line.startswith("| raw input")]
-    # random and voxel coverage, fidelity, ground band kept (coverage, the band alone, fidelity), two-sided, by
-    # sensor, box noise
-    assert len(pandaset_rows) == 9
+    # random and voxel coverage, fidelity, ground band kept (coverage, the band alone, by zone, fidelity),
+    # two-sided, by sensor, box noise
+    assert len(pandaset_rows) == 10
     band = pandaset.split("### Ground band kept: coverage")[1].split("### Ground band kept: fidelity")[0]
     band_fidelity = pandaset.split("### Ground band kept: fidelity")[1].split("###")[0]
     raw_band = [cells(line) for line in band_fidelity.splitlines() if line.startswith("| raw input")][0]
-    assert float(raw_band[1]) > 0.0    # the band's points are not in the ground-cut input
+    assert raw_band[1] == "0.000"   # the raw input holds every in-box point: above the cut and the band's
     band_rows = [cells(line) for line in band.splitlines() if line.startswith("| raw input")]
     assert float(band_rows[1][1]) > float(band_rows[0][1])   # the band alone is covered worse than the whole
+    assert len(band_rows) == 3 and len(band_rows[2]) == 3   # the band near the sides and under the body
+    assert "m of the box's left or right side" in band and "% of the band's points on average" in band
+    assert any(not math.isnan(float(c)) for c in band_rows[2][1:])
     oracle = [cells(line) for line in pandaset.splitlines() if line.startswith("| (oracle)")]
     assert len(oracle) == 1 and float(oracle[0][1]) < float(oracle[0][2])   # the noisy box misplaces it
     fidelity_rows = [line for line in pandaset.split("### Fidelity")[1].splitlines() if line.startswith("| ")]

@@ -38,6 +38,9 @@ REFERENCE_POINTS = 4096           # voxel-uniform reference
 RANDOM_REFERENCE_POINTS = 20_000  # random reference (the issue's scorer)
 DEFAULT_BOX_NOISE = BoxNoise()
 REFERENCE_VOXEL = 0.01  # normalised units (vehicle length = 1): about 4-5 cm on a car
+# The ground band's points within this many metres of a side of the box are the tyres' and wheel arches' zone; those
+# farther inside lie under the body (the road a vehicle completion does not publish, and any low chassis part).
+BAND_SIDE_ZONE = 0.4
 
 
 def is_vehicle_class(label: str) -> bool:
@@ -71,8 +74,8 @@ class VehicleTrack:
     origins: list[np.ndarray] = field(default_factory=list)  # world sensor position (poses.json) per entry
     noisy: list[CroppedVehicle | None] = field(default_factory=list)  # the crop of the noisy box
     bands: list[np.ndarray] = field(default_factory=list)  # normalised (K, 3) per entry: `CroppedVehicle.band`
-    in_box: list[np.ndarray] = field(default_factory=list)  # normalised (M', 3) per entry: every in-box point,
-    # the ground band (the lowest `ground_clearance` of the box) included
+    in_box: list[np.ndarray] = field(default_factory=list)  # normalised (M', 3) per entry: every point inside
+    # the exact box (no crop margin), the ground band (the lowest `ground_clearance` of the box) included
     reference: list[np.ndarray] = field(default_factory=list)  # normalised (R, 3) per entry: the contract's crop
 
     def aggregate(self) -> np.ndarray:
@@ -158,10 +161,12 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
     box frame; the uuid links frames; a sensor uses the cuboids with sensor id -1 or its own. Frames without
     a lidar file are skipped. With `noise`, entries with >= `noise_min_points` points are cropped again with
     a noisy box (`box_noise.noisy_box`, key (track id, frame, sensor)); None where that crop is empty. Every
-    entry also keeps all its in-box points, the ground band below `prep.ground_clearance` included (`in_box`).
+    entry also keeps all its points inside the exact box (no crop margin: the road beside the vehicle is not
+    vehicle), the ground band below `prep.ground_clearance` included (`in_box`).
     `input_margin` (metres; default `prep.crop_margin`): the crop margin of the inputs, the exact and the noisy
-    boxes' (`points`, `bands`, `noisy`); the references (`reference`, `in_box`) keep `prep`'s. It can only widen the
-    contract's (ValueError; `Preprocessing` bounds it above), so an entry's inputs hold its reference's points.
+    boxes' (`points`, `bands`, `noisy`); the references keep `prep`'s (`reference`) or the exact box (`in_box`). It
+    can only widen the contract's (ValueError; `Preprocessing` bounds it above), so an entry's inputs hold its
+    reference's points.
     """
     inputs = input_preprocessing(prep, input_margin)
     tracks = {uuid: VehicleTrack(uuid, sequence.track_ids.get(uuid, 0), label) for uuid, label in vehicles.items()}
@@ -184,8 +189,8 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
             cropped = crop_vehicles(points, boxes, prep)[0]
             given = cropped if inputs is prep else crop_vehicles(points, boxes, inputs)[0]
             entered = {v.box.instance_id: v for v in given}
-            in_box = {v.box.instance_id: v.normalized
-                      for v in crop_vehicles(points, boxes, replace(prep, ground_clearance=0.0, min_points=1))[0]}
+            in_box = {v.box.instance_id: v.normalized for v in crop_vehicles(
+                points, boxes, replace(prep, crop_margin=0.0, ground_clearance=0.0, min_points=1))[0]}
             noisy: dict[int, CroppedVehicle] = {}
             if noise is not None:
                 shaken = [noisy_box(v.box, noise, (v.box.instance_id, index, sensor)) for v in cropped
@@ -202,7 +207,7 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
                 track.sensors.append(int(sensor))
                 track.origins.append(np.asarray(origin, np.float64))
                 track.noisy.append(noisy.get(vehicle.box.instance_id))
-                track.in_box.append(in_box[vehicle.box.instance_id])
+                track.in_box.append(in_box.get(vehicle.box.instance_id, np.zeros((0, 3), np.float32)))
     return tracks
 
 
@@ -210,6 +215,12 @@ def in_ground_band(normalized: np.ndarray, box: Box3D, ground_clearance: float) 
     """Bool (M,): normalised points in the box's lowest `ground_clearance` metres (those the crop's ground cut drops:
     tyres, wheel arches, and the road)."""
     return ~above_ground(normalized, box, ground_clearance)
+
+
+def near_a_side(normalized: np.ndarray, box: Box3D, zone: float = BAND_SIDE_ZONE) -> np.ndarray:
+    """Bool (M,): normalised points within `zone` metres of the box's left or right side (|y| beyond half the
+    width less `zone`)."""
+    return np.abs(normalized[:, 1]) * box.size[0] >= box.size[1] / 2 - zone
 
 
 def placement_floor(reference: np.ndarray, perfect: np.ndarray, placed_by: Box3D, true_box: Box3D) -> float:
@@ -261,7 +272,8 @@ class PandaSetItem:
     metrics.
 
     coverage: random reference; coverage_voxel: voxel-uniform reference; coverage_band: random reference of every
-    in-box point, ground band included, and band_coverage its points in the band only (NaN where it has none);
+    in-box point, ground band included, and band_coverage its points in the band only (NaN where it has none),
+    band_sides and band_under the band's points within `BAND_SIDE_ZONE` of a side and the others;
     fidelity_band: every in-box point of the frame, band included, to the output; noisy_coverage: the box-noise run
     (random reference, clean box's frame; NaN when the noisy crop was empty); precision, judged, recall,
     f_score: the two-sided metric of `observed` (fractions); placement_floor: `placement_floor` of the exact and
@@ -284,6 +296,9 @@ class PandaSetItem:
     coverage_band: dict[str, float] = field(default_factory=dict)   # reference with the ground band (random)
     band_coverage: dict[str, float] = field(default_factory=dict)   # that reference's ground-band points only
     fidelity_band: dict[str, float] = field(default_factory=dict)   # every in-box point of the frame -> output
+    band_sides: dict[str, float] = field(default_factory=dict)   # the band's points near a side (`near_a_side`)
+    band_under: dict[str, float] = field(default_factory=dict)   # the band's other points (under the body)
+    band_side_share: float = math.nan   # share of the reference's band points near a side
     output_points: dict[str, int] = field(default_factory=dict)
     placement_floor: tuple[float, float] | None = None   # (exact box, noisy box): see `placement_floor`
 
@@ -374,7 +389,9 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
         aggregate = track.aggregate()
         refs[track.uuid] = (random_reference(aggregate, random_points, seed=track.instance_id), voxel,
                             range_images(track.pose_scans()))
-        band_refs[track.uuid] = random_reference(track.aggregate_in_box(), random_points, seed=track.instance_id)
+        in_box = track.aggregate_in_box()   # empty only when every point lies in the crop margin: NaN below
+        band_refs[track.uuid] = random_reference(in_box, random_points, seed=track.instance_id) if len(in_box) \
+            else np.zeros((0, 3), np.float32)
         if noise is not None:   # a perfect completion: the aggregate itself (another random sample of it)
             perfect[track.uuid] = random_reference(aggregate, model.config.num_output, seed=track.instance_id + 1)
         meta += [(track, k) for k in picks]
@@ -406,6 +423,9 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
         seen = len(track.reference[k])   # the bucket: the contract's count, whatever the input margin
         item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], seen, size_bin(seen), {}, {})
         low = in_ground_band(band_refs[track.uuid], box, prep.ground_clearance)   # the same for every method
+        sides = low & near_a_side(band_refs[track.uuid], box)
+        under = low & ~sides
+        item.band_side_share = float(sides.sum() / low.sum()) if low.any() else math.nan
         for name in BASELINE_NAMES:
             out = outputs[name]
             to_out = nearest_sq(ref_random, out)
@@ -417,9 +437,11 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             item.recall[name], item.f_score[name] = two.recall, two.f_score
             item.output_points[name] = len(out)
             to_band = nearest_sq(band_refs[track.uuid], out)
-            item.coverage_band[name] = float(to_band.mean()) * COVERAGE_SCALE
-            item.band_coverage[name] = float(to_band[low].mean()) * COVERAGE_SCALE if low.any() else math.nan
-            item.fidelity_band[name] = float(nearest_sq(track.in_box[k], out).mean()) * FIDELITY_SCALE
+            item.coverage_band[name] = float(to_band.mean()) * COVERAGE_SCALE if len(to_band) else math.nan
+            for zone, values in ((low, item.band_coverage), (sides, item.band_sides), (under, item.band_under)):
+                values[name] = float(to_band[zone].mean()) * COVERAGE_SCALE if zone.any() else math.nan
+            item.fidelity_band[name] = (float(nearest_sq(track.in_box[k], out).mean()) * FIDELITY_SCALE
+                                        if len(track.in_box[k]) else math.nan)
         if i in noisy_nets:
             crop = track.noisy[k]
             assert crop is not None   # k is in noisy_nets

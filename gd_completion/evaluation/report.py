@@ -16,7 +16,7 @@ from .fusion_eval import RATIO_FRAMES, FusionResult
 from .mesh_distance import FAR_FROM_SURFACE, NEAR_SURFACE
 from .metrics import OBSERVED_RADIUS
 from .observed import OBSERVED_DEFINITION, TAU
-from .pandaset_eval import SENSOR_NAMES, SIZE_BINS, PandaSetItem, PandaSetResult
+from .pandaset_eval import BAND_SIDE_ZONE, SENSOR_NAMES, SIZE_BINS, PandaSetItem, PandaSetResult
 from .synthetic import AblationRow, SyntheticResult
 
 
@@ -124,6 +124,19 @@ def _metric_table(items: list[PandaSetItem], attr: str, scale: float = 1.0, poin
     return markdown_table(headers, rows)
 
 
+def _band_zone_table(items: list[PandaSetItem]) -> str:
+    """The band's coverage near the sides (tyres, wheel arches) and under the body, every observation."""
+    share = _nanmean([i.band_side_share for i in items])
+    table = markdown_table(
+        ["method", f"within {BAND_SIDE_ZONE} m of a side", "under the body"],
+        [[BASELINE_TITLES[n], _nanmean([i.band_sides.get(n, math.nan) for i in items]),
+          _nanmean([i.band_under.get(n, math.nan) for i in items])] for n in BASELINE_NAMES])
+    return (f"The band by where it lies (coverage error x1e3, all observations): its points within {BAND_SIDE_ZONE} m "
+            f"of the box's left or right side (the tyres, wheel arches and sills; {100 * share:.0f} % of the band's "
+            "points on average) and those farther inside, under the body (the road seen beneath the vehicle, which "
+            "a completion of the vehicle does not publish, and any low chassis part).\n\n" + table)
+
+
 PLACEMENT_FLOOR_TITLE = "(oracle) the vehicle's own aggregate, placed by the box"
 PLACEMENT_FLOOR_NOTE = (
     "The oracle row is not a method: a perfect completion (as many random points of the vehicle's own "
@@ -166,14 +179,17 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
                  + _metric_table(items, "fidelity"))
     parts.append("### Ground band kept: coverage error x1e3, exact box, every in-box point in the reference\n\n"
                  "The same observations and outputs; the reference is a random sample "
-                 f"({result.random_points:,} points) of every in-box point of every frame and sensor, the lowest "
-                 "0.1 m of the box (tyres, wheel arches and the road under them, which the crop's ground cut drops "
-                 "from the network's inputs) included. The band's points inside the box's footprint are pooled by "
+                 f"({result.random_points:,} points) of every point inside the exact box (no crop margin, so not "
+                 "the road beside the vehicle) of every frame and sensor, the lowest 0.1 m of the box (tyres, wheel "
+                 "arches and the road under them, which the crop's ground cut drops from the network's inputs) "
+                 "included. The band's points inside the box's footprint are pooled by "
                  "the measured merge, and are part of the raw input and of the priors' inputs too.\n\n"
                  + _metric_table(items, "coverage_band")
                  + "\n\nThat reference's ground-band points alone (coverage error x1e3 of the band; observations "
-                 "whose reference has band points):\n\n" + _metric_table(items, "band_coverage"))
-    parts.append("### Ground band kept: fidelity x1e3 (every in-box point of the frame, band included -> output)\n\n"
+                 "whose reference has band points):\n\n" + _metric_table(items, "band_coverage")
+                 + "\n\n" + _band_zone_table(items))
+    parts.append("### Ground band kept: fidelity x1e3 (every point of the frame inside the exact box, band included -> "
+                 "output)\n\n"
                  + _metric_table(items, "fidelity_band"))
     groups = _groups(items)
     rows = [[BASELINE_TITLES[n], _nanmean([i.precision[n] for i in items]), _nanmean([i.judged[n] for i in items]),
