@@ -39,7 +39,7 @@ RANDOM_REFERENCE_POINTS = 20_000  # random reference (the issue's scorer)
 DEFAULT_BOX_NOISE = BoxNoise()
 REFERENCE_VOXEL = 0.01  # normalised units (vehicle length = 1): about 4-5 cm on a car
 # The ground band's points within this many metres of a side of the box are the tyres' and wheel arches' zone; those
-# farther inside lie under the body (the road a vehicle completion does not publish, and any low chassis part).
+# farther inside lie under the body or the overhangs (the road seen beneath the vehicle, and any low chassis part).
 BAND_SIDE_ZONE = 0.4
 
 
@@ -85,7 +85,7 @@ class VehicleTrack:
         return np.concatenate(self.reference).astype(np.float32, copy=False)
 
     def aggregate_in_box(self) -> np.ndarray:
-        """All entries' in-box points, ground band included (normalised), (sum M', 3) float32."""
+        """All entries' points inside the exact box, ground band included (normalised), (sum M', 3) float32."""
         if not self.in_box:
             return np.zeros((0, 3), np.float32)
         return np.concatenate(self.in_box).astype(np.float32, copy=False)
@@ -219,7 +219,7 @@ def in_ground_band(normalized: np.ndarray, box: Box3D, ground_clearance: float) 
 
 def near_a_side(normalized: np.ndarray, box: Box3D, zone: float = BAND_SIDE_ZONE) -> np.ndarray:
     """Bool (M,): normalised points within `zone` metres of the box's left or right side (|y| beyond half the
-    width less `zone`)."""
+    width less `zone`); the strips under the front and rear overhangs are not."""
     return np.abs(normalized[:, 1]) * box.size[0] >= box.size[1] / 2 - zone
 
 
@@ -272,9 +272,10 @@ class PandaSetItem:
     metrics.
 
     coverage: random reference; coverage_voxel: voxel-uniform reference; coverage_band: random reference of every
-    in-box point, ground band included, and band_coverage its points in the band only (NaN where it has none),
-    band_sides and band_under the band's points within `BAND_SIDE_ZONE` of a side and the others;
-    fidelity_band: every in-box point of the frame, band included, to the output; noisy_coverage: the box-noise run
+    point inside the exact box, ground band included, and band_coverage its points in the band only (NaN where it
+    has none), band_sides and band_under the band's points within `BAND_SIDE_ZONE` of a side and the others,
+    band_side_share the share of the band's points near a side; fidelity_band: every point of the frame inside the
+    exact box, band included, to the output; noisy_coverage: the box-noise run
     (random reference, clean box's frame; NaN when the noisy crop was empty); precision, judged, recall,
     f_score: the two-sided metric of `observed` (fractions); placement_floor: `placement_floor` of the exact and
     the noisy box (box-noise run only)."""

@@ -131,10 +131,12 @@ def _band_zone_table(items: list[PandaSetItem]) -> str:
         ["method", f"within {BAND_SIDE_ZONE} m of a side", "under the body"],
         [[BASELINE_TITLES[n], _nanmean([i.band_sides.get(n, math.nan) for i in items]),
           _nanmean([i.band_under.get(n, math.nan) for i in items])] for n in BASELINE_NAMES])
+    share_text = "-" if math.isnan(share) else f"{100 * share:.0f}"
     return (f"The band by where it lies (coverage error x1e3, all observations): its points within {BAND_SIDE_ZONE} m "
-            f"of the box's left or right side (the tyres, wheel arches and sills; {100 * share:.0f} % of the band's "
-            "points on average) and those farther inside, under the body (the road seen beneath the vehicle, which "
-            "a completion of the vehicle does not publish, and any low chassis part).\n\n" + table)
+            f"of the box's left or right side (the tyres, wheel arches and sills; {share_text} % of the band's "
+            "points on average) and the others, under the body and the overhangs (the road seen beneath the "
+            "vehicle, which the network does not generate: only the frame's measured band points are published, "
+            "and any low chassis part).\n\n" + table)
 
 
 PLACEMENT_FLOOR_TITLE = "(oracle) the vehicle's own aggregate, placed by the box"
