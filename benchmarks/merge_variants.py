@@ -30,7 +30,7 @@ from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.kernels import fps_pruned
 from gd_completion.merge import POOL_VOXEL, merge_measured, merge_with_pool, mirrored
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
-from gd_completion.preprocess import with_band
+from gd_completion.preprocess import with_aside
 from gd_completion.sampling import voxel_first_indices
 from gd_completion.spacing import even_spacing
 
@@ -87,8 +87,8 @@ def main() -> None:
         completions = even_spacing(completions, graph=graph)
     merges: dict[str, Merge] = {
         "network alone": lambda c, p, r, s, b: c,
-        "mirror + template": lambda c, p, r, s, b: prior_outputs(with_band(p, b), s, len(c))["mirror_template"],
-        "shipped": lambda c, p, r, s, b: merge_with_pool(c, p, band=b).points}
+        "mirror + template": lambda c, p, r, s, b: prior_outputs(with_aside(p, b), s, len(c))["mirror_template"],
+        "shipped": lambda c, p, r, s, b: merge_with_pool(c, p, aside=b).points}
     for spec in args.variants:
         kind, *values = spec.split(":")
         merges[spec] = fed_only if kind == "fed" else outliers_dropped(int(values[0]), float(values[1])) \

@@ -37,7 +37,7 @@ from gd_completion.evaluation.synthetic import _chamfer_row, load_heldout_meshes
 from gd_completion.merge import MIRROR_WEIGHT, NETWORK_WEIGHT, check_weights, merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.network import GGDNet
-from gd_completion.preprocess import with_band
+from gd_completion.preprocess import with_aside
 from gd_completion.spacing import SpacingSettings, even_spacing
 
 
@@ -114,7 +114,7 @@ def main() -> None:
     print(f"PandaSet: {len(observations)} observations; coverage x1e3 all / {' / '.join(bins)} of the network's "
           "points, then of the published output | its fidelity x1e3 | ms per vehicle || held-out meshes "
           f"({len(heldout.partial)} pairs), published: CD, CD(D,G) x1e4, F-score@1 %, on the surface")
-    prior = [prior_outputs(with_band(p, b), s, raw.shape[1])["mirror_template"] for p, s, _, b in observations]
+    prior = [prior_outputs(with_aside(p, b), s, raw.shape[1])["mirror_template"] for p, s, _, b in observations]
     prior_coverage = [nearest_sq(o[2], q).mean() * 1e3 for o, q in zip(observations, prior)]
     print(f"{'mirror + template':22s} {by_bucket(prior_coverage, where, bins)}")
     weights: list[tuple[float, float]] = args.merge_weights
@@ -123,7 +123,7 @@ def main() -> None:
         network = [nearest_sq(o[2], c).mean() * 1e3 for o, c in zip(observations, points)]
         h_points = spaced(spec, h_raw, h_graph)[0]
         for network_weight, mirror_weight in weights:
-            merged = [merge_with_pool(c, p, band=b, network_weight=network_weight, mirror_weight=mirror_weight).points
+            merged = [merge_with_pool(c, p, aside=b, network_weight=network_weight, mirror_weight=mirror_weight).points
                       for c, (p, _, _, b) in zip(points, observations)]
             published = [nearest_sq(o[2], m).mean() * 1e3 for o, m in zip(observations, merged)]
             fidelity = [nearest_sq(o[0], m).mean() * 1e3 for o, m in zip(observations, merged)]

@@ -3,7 +3,8 @@
 The network's N_o points cover the whole vehicle, but only its N_c control points are copies of measured
 points; a densely seen side is better described by the measurements themselves. The merge pools every measured
 point of the vehicle (one per `POOL_VOXEL` voxel: a single frame's crop or a track's fused partial alike, and the
-frame's ground-band points in the box's footprint, which the network is not fed: tyres and wheel arches), adds
+points the crop kept aside, which the network is not fed: the ground band in the box's footprint, tyres and wheel
+arches, and the surround within the pool margin, the ends a loose box cuts off), adds
 their mirror image about the box's longitudinal plane (y -> -y) and the completion, and keeps N_o of the union by
 a weighted farthest point sampling (`kernels.fps_pruned` with weights; deterministic, starting at a measured point):
 a measured point is taken where nothing chosen lies within its distance, a mirrored point only
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gd_completion.kernels import fps_pruned
-from gd_completion.preprocess import with_band
+from gd_completion.preprocess import with_aside
 from gd_completion.sampling import voxel_first_indices
 
 # The measured points are pooled one per voxel of this size (normalised: 1 % of the length), bounding the merge's cost
@@ -89,13 +90,13 @@ def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None =
 
 
 def merge_with_pool(completion: np.ndarray, partial: np.ndarray, voxel: float = POOL_VOXEL,
-                    band: np.ndarray | None = None, *, network_weight: float = NETWORK_WEIGHT,
+                    aside: np.ndarray | None = None, *, network_weight: float = NETWORK_WEIGHT,
                     mirror_weight: float = MIRROR_WEIGHT) -> Merged:
     """`merge_measured` with one point per `voxel` voxel of a vehicle's measured `partial` (normalised; the first in
     its order: a track's fused partial lists the oldest frame first, so the pool changes little from frame to
-    frame) and of its ground-band points `band` (`preprocess.CroppedVehicle.band`: tyres and wheel arches the
-    network is not fed). `Merged.measured_row` indexes `partial` followed by `band`."""
-    measured = with_band(partial, band)
+    frame) and of the points its crop kept aside, `aside` (`preprocess.CroppedVehicle.aside`: the ground band and the
+    surround, which the network is not fed). `Merged.measured_row` indexes `partial` followed by `aside`."""
+    measured = with_aside(partial, aside)
     rows = voxel_first_indices(measured, voxel)
     merged = merge_measured(completion, measured[rows], network_weight=network_weight, mirror_weight=mirror_weight)
     return Merged(merged.points, np.where(merged.is_measured, rows[np.maximum(merged.measured_row, 0)], -1))

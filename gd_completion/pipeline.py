@@ -26,7 +26,7 @@ from gd_completion.merge import merge_with_pool
 from gd_completion.model.box_refiner import box_from_frame
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
-from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
+from gd_completion.preprocess import POOL_MARGIN, CroppedVehicle, Preprocessing, crop_vehicles
 from gd_completion.registration import align_planar
 from gd_completion.reuse import DUE_UNCACHED, CachedCompletion, CompletionCache, Decision, ReuseSettings
 from gd_completion.sampling import resample_indices
@@ -137,6 +137,7 @@ class VehicleCompleter:
         publish_fused_points: bool = False,
         measured_merge: bool = True,
         even_spacing: bool = True,
+        pool_margin: float = POOL_MARGIN,
         track_ids: str = "message",
         association: AssociationSettings | None = None,
         reuse: ReuseSettings | None = None,
@@ -151,6 +152,7 @@ class VehicleCompleter:
         self.publish_fused_points = bool(publish_fused_points)
         self.measured_merge = bool(measured_merge)
         self.even_spacing = bool(even_spacing)
+        self.pool_margin = float(pool_margin)   # metres: points kept aside for the merge (`crop_vehicles`)
         if track_ids not in TRACK_ID_MODES:
             raise ValueError(f"track_ids={track_ids!r} must be one of {TRACK_ID_MODES}")
         self.track_ids = track_ids
@@ -193,7 +195,8 @@ class VehicleCompleter:
             min_points=settings.min_points or None,
             crop_margin=settings.crop_margin if settings.crop_margin >= 0 else None, limits=settings.limits,
             labels=settings.labels, include_input_points=settings.include_input_points,
-            measured_merge=settings.measured_merge, even_spacing=settings.even_spacing, track_ids=settings.track_ids,
+            measured_merge=settings.measured_merge, even_spacing=settings.even_spacing,
+            pool_margin=settings.pool_margin, track_ids=settings.track_ids,
             association=settings.association, reuse=settings.reuse,
             fusion=TrackFusion(settings.fusion) if settings.track_fusion else None,
             publish_fused_points=settings.publish_fused_points)
@@ -243,29 +246,29 @@ class VehicleCompleter:
         kept, screened = screen_boxes(usable, self.limits)
         for i, reason in screened:
             stats.skip(usable[i], reason)
-        vehicles, too_few = crop_vehicles(points, [usable[i] for i in kept], self.preprocessing)
+        vehicles, too_few = crop_vehicles(points, [usable[i] for i in kept], self.preprocessing, self.pool_margin)
         for box in too_few:
             stats.skip(box, "too_few_points")
-        limit = self.limits.max_points_per_vehicle   # the ground band's points count too: the merge pools them
-        for vehicle in (v for v in vehicles if len(v.measured) + len(v.band) > limit):
+        limit = self.limits.max_points_per_vehicle   # the points kept aside count too: the merge pools them
+        for vehicle in (v for v in vehicles if len(v.measured) + len(v.aside) > limit):
             stats.skip(vehicle.box, "too_many_points")
-        return [v for v in vehicles if len(v.measured) + len(v.band) <= limit]
+        return [v for v in vehicles if len(v.measured) + len(v.aside) <= limit]
 
     def complete_normalized(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None = None,
-                            bands: Sequence[np.ndarray] | None = None) -> np.ndarray:
+                            asides: Sequence[np.ndarray] | None = None) -> np.ndarray:
         """Complete vehicles given in the normalised box frame, their boxes' sizes (length, width, height)
-        beside them (needed by a box-conditioned model) and optionally their ground-band points
-        (`CroppedVehicle.band`); returns (B, num_output, 3) float32 (with `measured_merge`, the merged points of
+        beside them (needed by a box-conditioned model) and optionally the points their crops kept aside
+        (`CroppedVehicle.aside`); returns (B, num_output, 3) float32 (with `measured_merge`, the merged points of
         `merge.merge_with_pool`)."""
         if not len(partials):
             return np.zeros((0, self.num_output, 3), np.float32)
-        done = self._complete_all(partials, sizes, self.measured_merge, math.inf, None, bands=bands,
+        done = self._complete_all(partials, sizes, self.measured_merge, math.inf, None, asides=asides,
                                   spacing=self.even_spacing)
         return np.stack([result[0] for result in done if result is not None])   # no deadline: all are done
 
     def _complete_all(self, partials: Sequence[np.ndarray], sizes: Sequence[Sequence[float]] | None, merge: bool,
                       deadline: float, cancel: threading.Event | None, finish_by: bool = False,
-                      bands: Sequence[np.ndarray] | None = None, spacing: bool = True
+                      asides: Sequence[np.ndarray] | None = None, spacing: bool = True
                       ) -> list[VehicleResult | None]:
         """Each vehicle's (completion, measured rows) in order (`_complete_one`, with `merge` and `spacing` read
         once for all of them); None for those not started before
@@ -273,31 +276,31 @@ class VehicleCompleter:
         when it is expected to finish by `deadline` (the recent mean time of one vehicle)."""
         if sizes is not None and len(sizes) != len(partials):
             raise ValueError(f"{len(partials)} partial clouds but {len(sizes)} box sizes")
-        if bands is not None and len(bands) != len(partials):
-            raise ValueError(f"{len(partials)} partial clouds but {len(bands)} ground bands")
+        if asides is not None and len(asides) != len(partials):
+            raise ValueError(f"{len(partials)} partial clouds but {len(asides)} sets of points kept aside")
 
         def one(item: tuple[int, np.ndarray, Sequence[float] | None, np.ndarray | None]) -> VehicleResult | None:
-            index, partial, size, band = item
+            index, partial, size, aside = item
             started = time.monotonic()
             expected = self._vehicle_seconds if finish_by and index > 0 else 0.0
             if started + expected > deadline or (cancel is not None and cancel.is_set()):
                 return None
-            result = self._complete_one(partial, size, merge, band, spacing)
+            result = self._complete_one(partial, size, merge, aside, spacing)
             self._vehicle_seconds += 0.2 * (time.monotonic() - started - self._vehicle_seconds)
             return result
         run = self._pool.map if self._pool is not None else map
         count = len(partials)
         return list(run(one, zip(range(count), partials, sizes if sizes is not None else [None] * count,
-                                 bands if bands is not None else [None] * count)))
+                                 asides if asides is not None else [None] * count)))
 
     def _complete_one(self, partial: np.ndarray, size: Sequence[float] | None, merge: bool,
-                      band: np.ndarray | None = None, spacing: bool = True) -> VehicleResult:
+                      aside: np.ndarray | None = None, spacing: bool = True) -> VehicleResult:
         """Resample one vehicle to the network's input size (`preprocess.network_input`) and complete it (one
         task of the thread pool): (num_output, 3) float32 points in the normalised frame (with `spacing`, the
         network's points evenly spaced: `spacing.even_spacing`) and, per point, the
         row of `partial` it copies (-1: generated); with `merge`, merged with a pool of all its measured points
-        (`merge.merge_with_pool`; a single frame's crop or a track's fused partial alike, and the ground-band points
-        `band`, whose rows follow the partial's), else all generated; and the refined box's frame vector (None
+        (`merge.merge_with_pool`; a single frame's crop or a track's fused partial alike, and the points kept aside
+        `aside`, whose rows follow the partial's), else all generated; and the refined box's frame vector (None
         without a refiner)."""
         partial = np.asarray(partial, np.float32).reshape(-1, 3)
         rows = resample_indices(len(partial), partial, self.num_input)
@@ -311,7 +314,7 @@ class VehicleCompleter:
             completion = even_spacing(completion, graph=graph)
         if not merge:
             return completion, np.full(len(completion), -1, np.int64), frame
-        merged = merge_with_pool(completion, partial, band=band)
+        merged = merge_with_pool(completion, partial, aside=aside)
         return merged.points, merged.measured_row, frame
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],
@@ -334,9 +337,9 @@ class VehicleCompleter:
         points are published; without them, they keep this frame's measured coordinates, not those of the
         track's placement); with track fusion but without `publish_fused_points`, the completion's points from
         the track's earlier frames count as generated=1, as do a reused completion's measured points when the
-        measured points are not published. The ground band's points the merge keeps (`CroppedVehicle.band`: tyres
-        below the ground cut, never among the measured points published) stay in the completion with generated=0
-        (generated=1 in a reused completion). The settings are read once per frame."""
+        measured points are not published. The points kept aside that the merge keeps (`CroppedVehicle.aside`: tyres
+        below the ground cut, the surround within `pool_margin`; never among the measured points published) stay in
+        the completion with generated=0 (generated=1 in a reused completion). The settings are read once per frame."""
         stats = FrameStats()
         deadline = time.monotonic() + self.limits.time_budget_s
         include = self.include_input_points
@@ -399,7 +402,7 @@ class VehicleCompleter:
         results = self._complete_all([vehicles[i].normalized for i in due], [vehicles[i].box.size for i in due],
                                      self.measured_merge, run_deadline, cancel,
                                      finish_by=cache is not None and math.isfinite(cache.settings.budget_s),
-                                     bands=[vehicles[i].band for i in due], spacing=self.even_spacing)
+                                     asides=[vehicles[i].aside for i in due], spacing=self.even_spacing)
         ran = dict(zip(due, results))
         cancelled = cancel is not None and cancel.is_set()
         outputs: list[tuple[np.ndarray, np.ndarray, np.ndarray | None] | None] = []
@@ -408,7 +411,7 @@ class VehicleCompleter:
             if result is not None:
                 stats.completions_run += 1
                 if cache is not None and vehicle.box.instance_id >= 0:
-                    # measured: rows of the partial (a reuse publishes them afresh); the band's rows stay with the
+                    # measured: rows of the partial (a reuse publishes them afresh); the rows kept aside stay with the
                     # completion, published as generated=1 when reused (that frame's tyres, not this one's)
                     measured = (result[1] >= 0) & (result[1] < len(vehicle.normalized))
                     cache.store(vehicle.box.instance_id, stamp, vehicle.box.size, result[0], measured,
@@ -449,15 +452,15 @@ class VehicleCompleter:
         # the rows of the partial that are this frame's measured points (all of them but with fusion: its last)
         own_from = 0 if self.publish_fused_points or vehicle.current_rows is None \
             else len(vehicle.normalized) - vehicle.current_rows
-        band = row >= len(vehicle.normalized)   # this frame's ground-band points: measured, never in `measured`
-        own = (row >= own_from) & ~band
+        aside = row >= len(vehicle.normalized)   # this frame's points kept aside: measured, never in `measured`
+        own = (row >= own_from) & ~aside
         if include:   # published with the measured points
-            completion, own, band = completion[~own], own[~own], band[~own]
+            completion, own, aside = completion[~own], own[~own], aside[~own]
         elif vehicle.current_source is not None and not self.publish_fused_points and own.any():
             # this frame's points where it measured them, not where its track placed them
             completion = completion.copy()
             completion[own] = normalize(vehicle.measured[vehicle.current_source[row[own] - own_from]], vehicle.box)
-        return completion, np.where(own | band, 0, 1).astype(np.uint8)
+        return completion, np.where(own | aside, 0, 1).astype(np.uint8)
 
     def _cached_output(self, cached: CachedCompletion, include: bool) -> tuple[np.ndarray, np.ndarray]:
         """A cached completion as published: with the measured points published, its points that were measured

@@ -20,6 +20,7 @@ from gd_completion.errors import BoxError, GDCompletionError
 from gd_completion.fusion import FusionLimits
 from gd_completion.labels import DEFAULT_LABELS, LABEL_IDS
 from gd_completion.limits import FrameLimits
+from gd_completion.preprocess import POOL_MARGIN
 from gd_completion.registration import AlignSettings
 from gd_completion.reuse import ReuseSettings
 from gd_completion.stamp_sync import SYNC_TOLERANCE_S
@@ -68,6 +69,11 @@ SETTINGS: dict[str, Setting] = {
                                  "preprocessing (0.1 for the shipped weights). With a detector's boxes 0.2 keeps the "
                                  "ends a box cuts off; with exact boxes it costs frame-to-frame consistency "
                                  "(docs/MODEL.md).", -1.0, 5.0, live=True),
+    "pool_margin": Setting(POOL_MARGIN, "Metres around a box within which measured points above the ground are "
+                                        "published with its completion (pooled by the measured merge, generated=0) "
+                                        "though not fed to the network, where wider than the crop margin: the ends "
+                                        "a detector's box cuts off. 0 = the crop's points only.", 0.0, 5.0,
+                           live=True),
     "labels": Setting(list(DEFAULT_LABELS), f"Labels to complete (of {sorted(LABEL_IDS)}).", live=True),
     "class_preset": Setting(DEFAULT_PRESET, "Detector classes -> labels: names (KITTI, nuScenes and Autoware class "
                                             "names; numeric ids unmapped), kitti, nuscenes, autoware or "
@@ -183,6 +189,7 @@ class CompletionSettings:
     num_threads: int
     min_points: int              # 0: the checkpoint's
     crop_margin: float           # -1: the checkpoint's
+    pool_margin: float
     labels: tuple[str, ...]
     class_preset: str
     class_map: tuple[str, ...]   # the user's entries, as given (blank ones dropped)
@@ -233,7 +240,8 @@ class CompletionSettings:
                               size_change=v["reuse_size_change"], max_age_s=v["reuse_max_age"],
                               budget_s=v["completion_budget"]) if v["reuse"] else None
         return cls(model_path=str(v["model_path"]), device=device, num_threads=int(v["num_threads"]),
-                   min_points=int(v["min_points"]), crop_margin=float(v["crop_margin"]), labels=labels,
+                   min_points=int(v["min_points"]), crop_margin=float(v["crop_margin"]),
+                   pool_margin=float(v["pool_margin"]), labels=labels,
                    class_preset=str(v["class_preset"]),
                    class_map=tuple(str(e) for e in v["class_map"] if str(e).strip()),
                    sync_tolerance=float(v["sync_tolerance"]), use_tf=bool(v["use_tf"]),

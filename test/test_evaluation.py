@@ -208,7 +208,7 @@ def test_pandaset_aggregate_of_a_parked_vehicle(shared_data):
     from gd_completion.datasets.pandaset import PandaSetSequence
     from gd_completion.evaluation.nearest import nearest_sq
     from gd_completion.evaluation.pandaset_eval import collect_tracks, in_ground_band, stationary_vehicles
-    from gd_completion.preprocess import Preprocessing, with_band
+    from gd_completion.preprocess import Preprocessing, with_aside
 
     root = shared_data / "pandaset-002"
     if not root.is_dir():
@@ -255,8 +255,8 @@ def test_pandaset_aggregate_of_a_parked_vehicle(shared_data):
         assert nearest_sq(cropped[within], inside).max(initial=0.0) == 0.0   # the crop's in-box points are in it
     assert past_the_box > 0
     # ... and nothing else: each of its points is above the ground cut (in the crop) or in the footprint's band
-    for inside, cropped, band in zip(track_many.in_box, track_many.reference, track_many.bands):
-        assert nearest_sq(inside, with_band(cropped, band)).max() == 0.0
+    for inside, cropped, aside in zip(track_many.in_box, track_many.reference, track_many.asides):
+        assert nearest_sq(inside, with_aside(cropped, aside)).max() == 0.0
     assert any(in_ground_band(inside, box, prep.ground_clearance).any()
                for track in few.values() for box, inside in zip(track.boxes, track.in_box))
 
@@ -327,7 +327,7 @@ def test_size_buckets_count_the_contracts_crop(shared_data, monkeypatch):
     inputs = [np.vstack([r, (rng.uniform(-1, 1, (20, 3)) * scale).astype(np.float32)]) for r in reference]
     track = pe.VehicleTrack("u", 7, "Car", frames=[0, 1], points=inputs, boxes=[box, box], sensors=[0, 0],
                             origins=[np.zeros(3), np.zeros(3)], noisy=[None, None],
-                            bands=[np.zeros((0, 3), np.float32)] * 2, in_box=reference, reference=reference)
+                            asides=[np.zeros((0, 3), np.float32)] * 2, in_box=reference, reference=reference)
     monkeypatch.setattr(pe, "stationary_vehicles", lambda *args, **kwargs: {"u": "Car"})
     monkeypatch.setattr(pe, "collect_tracks", lambda *args, **kwargs: {"u": track})
     torch.manual_seed(0)
@@ -591,7 +591,7 @@ def test_evaluate_command_crop_margin(tmp_path, shared_data):
     the fidelity tables' reference rows equal), the report says so; a margin narrower than the model's contract or
     not finite is a one-line error before any output."""
     parser, common = _tiny_pandaset_run(tmp_path, shared_data)
-    common.append("--no-box-noise")
+    common += ["--no-box-noise", "--pool-margin", "0"]   # no points kept aside beyond the crop: the inputs differ
     texts = {}
     for name, extra in (("contract", []), ("wide", ["--crop-margin", "0.3"])):
         args = parser.parse_args(["evaluate", "--output", str(tmp_path / name), *extra, *common])
@@ -624,18 +624,55 @@ def test_evaluate_command_crop_margin(tmp_path, shared_data):
         assert not failed.exists()
 
 
+def test_evaluate_command_pool_margin(tmp_path, shared_data):
+    """`--pool-margin` keeps the measured points within it aside for the merge: the inputs (raw input, published) gain
+    the points beside the crop, the references and the methods that ignore the input do not change, the report says
+    so and counts what is published beside the crop; an unusable margin is a one-line error before any output."""
+    parser, common = _tiny_pandaset_run(tmp_path, shared_data)
+    common.append("--no-box-noise")
+    texts = {}
+    for margin in ("0", "0.4"):
+        args = parser.parse_args(["evaluate", "--output", str(tmp_path / margin), "--pool-margin", margin, *common])
+        assert args.func(args) == 0
+        texts[margin] = (tmp_path / margin / "report.md").read_text()
+    said = "The measured points above the ground within 0.4 m of the box"
+    assert said in texts["0.4"] and "The measured points above the ground within" not in texts["0"]
+
+    def row(text: str, section: str, title: str) -> list[str]:
+        table = text.split(section)[1].split("###")[0]
+        return [c.strip() for c in next(line for line in table.splitlines() if line.startswith(f"| {title}"))
+                .strip("|").split("|")]
+
+    coverage, two_sided = "### Coverage error x1e3 (reference", "### Two-sided"
+    assert row(texts["0"], coverage, "box fill") == row(texts["0.4"], coverage, "box fill")
+    assert row(texts["0"], coverage, "raw input") != row(texts["0.4"], coverage, "raw input")
+    beside = {m: float(row(t, two_sided, "raw input")[-1].rstrip(" %")) for m, t in texts.items()}
+    assert beside["0"] == 0.0 < beside["0.4"]   # the raw input's points beside the crop: the pool margin's only
+    assert row(texts["0.4"], two_sided, "box fill")[-1] == "0.00 %"
+    for bad, message in ((["--pool-margin", "-1"], "a margin in metres"), (["--pool-margin", "nan"], "a margin"),
+                         (["--pool-margin", "0.4", "--no-pandaset"], "the PandaSet part is skipped")):
+        failed = tmp_path / f"failed_{bad[1]}"
+        args = parser.parse_args(["evaluate", "--output", str(failed), *bad, *common])
+        with pytest.raises(EvaluationError, match=message):
+            args.func(args)
+        assert not failed.exists()
+
+
 @pytest.mark.integration  # reads the shared drive at length
 def test_evaluate_command_crop_margin_reaches_fusion_and_reuse(tmp_path, shared_data, monkeypatch):
     """`--crop-margin` is passed to the track-fusion and reuse parts too (the reuse part's completers crop with it;
-    both reports say so); the contract's own margin is not reported as wider anywhere."""
+    both reports say so); the contract's own margin is not reported as wider anywhere. The completers keep the
+    default pool margin."""
     from gd_completion import pipeline
+    from gd_completion.preprocess import POOL_MARGIN
 
-    margins = []
+    margins, pools = [], []
 
     class Recording(pipeline.VehicleCompleter):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             margins.append(self.preprocessing.crop_margin)
+            pools.append(self.pool_margin)
 
     monkeypatch.setattr(pipeline, "VehicleCompleter", Recording)
     parser, common = _tiny_pandaset_run(tmp_path, shared_data)
@@ -652,4 +689,6 @@ def test_evaluate_command_crop_margin_reaches_fusion_and_reuse(tmp_path, shared_
         for section in (fusion, reuse):
             assert (f"a margin of {margin} m" in section) == said
         assert margins == [float(margin)] * 3   # fresh, reuse by ids, reuse by association
+        assert pools == [POOL_MARGIN] * 3        # the node's default pool margin
         margins.clear()
+        pools.clear()

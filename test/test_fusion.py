@@ -176,9 +176,10 @@ def test_own_points_keep_their_measured_place_without_include_input_points() -> 
         result = completer.complete_frame(cloud, [box], stamp_ns=k * SECOND // 10)
         (fused,) = twin.update(k * SECOND // 10, completer.prepare(cloud, [box], FrameStats()))
     assert completer.fusion.counters["frames_aligned"] >= 4
-    completion, rows, _ = completer._complete_one(fused.normalized, box.size, True)
-    own = rows >= len(fused.normalized) - fused.current_rows
-    assert own.sum() > 20 and (result.generated == 0).sum() == own.sum()
+    completion, rows, _ = completer._complete_one(fused.normalized, box.size, True, fused.aside)
+    aside = rows >= len(fused.normalized)   # this frame's points beside the crop (the pool margin), as measured
+    own = (rows >= len(fused.normalized) - fused.current_rows) & ~aside
+    assert own.sum() > 20 and (result.generated == 0).sum() == own.sum() + aside.sum()
     published = result.points[own].astype(np.float64)           # the completion's order, own rows in place
     copied = fused.measured[fused.current_source[rows[own] - (len(fused.normalized) - fused.current_rows)]]
     np.testing.assert_allclose(published, copied, atol=1e-4)    # each the very point it copies, as measured

@@ -136,9 +136,9 @@ def test_fused_and_single_partials_are_both_scored_through_the_published_merge(s
     calls = []
     scored = fusion_eval.published_outputs
 
-    def recording(model, partials, sizes=None, max_batch=32, bands=None, spacing=None):
-        calls.append((len(partials), len(bands), spacing))
-        return scored(model, partials, sizes, max_batch=max_batch, bands=bands, spacing=spacing)
+    def recording(model, partials, sizes=None, max_batch=32, asides=None, spacing=None):
+        calls.append((len(partials), len(asides), spacing))
+        return scored(model, partials, sizes, max_batch=max_batch, asides=asides, spacing=spacing)
 
     monkeypatch.setattr(fusion_eval, "published_outputs", recording)
     torch.manual_seed(0)

@@ -245,7 +245,7 @@ def test_the_pool_takes_the_ground_band_and_indexes_it_after_the_partial():
     partial = (rng.random((600, 3)) * np.array([1.0, 0.02, 0.3]) + np.array([-0.5, 0.2, -0.1])).astype(np.float32)
     completion = (rng.random((2048, 3)) * np.array([1.0, 0.4, 0.3]) - np.array([0.5, 0.2, 0.1])).astype(np.float32)
     band = np.array([[0.3, 0.2, -0.16], [-0.3, 0.2, -0.16], [0.31, 0.19, -0.165]], np.float32)   # two tyres' bottoms
-    merged = merge_with_pool(completion, partial, band=band)
+    merged = merge_with_pool(completion, partial, aside=band)
     from_band = merged.measured_row >= len(partial)
     assert from_band.sum() >= 2
     np.testing.assert_array_equal(merged.points[from_band], band[merged.measured_row[from_band] - len(partial)])

@@ -463,6 +463,9 @@ def test_param_set_applied_or_refused(marker_node, frames, ros_context):
     xyz = lambda cloud: np.stack([cloud["x"], cloud["y"], cloud["z"]], 1)  # noqa: E731
     assert len(unspaced) == len(unmerged) and not np.allclose(xyz(unspaced), xyz(unmerged), atol=1e-3)
     assert all(r.successful for r in set_params(even_spacing=True, measured_merge=True))
+    assert set_params(pool_margin=0.0)[0].successful          # live: the crop's measured points only
+    assert not set_params(pool_margin=6.0)[0].successful      # beyond its range
+    assert set_params(pool_margin=0.4)[0].successful
     refused = set_params(cloud_topic="elsewhere")[0]          # read-only: refused with a reason
     assert not refused.successful and "read-only" in refused.reason
     refused = set_params(crop_margin=-0.5)[0]                 # in the declared range, but not -1 nor >= 0

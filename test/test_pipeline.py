@@ -234,16 +234,16 @@ def test_tyres_below_the_ground_cut_are_published_as_measured_points(completer: 
         assert not as_measured.any()
 
 
-def test_ground_bands_must_match_the_partials(completer: VehicleCompleter) -> None:
-    """A list of ground bands that does not match the partial clouds is refused with one clear error, not zipped
-    short (a vehicle silently completed without its band, or dropped)."""
+def test_points_kept_aside_must_match_the_partials(completer: VehicleCompleter) -> None:
+    """A list of the points kept aside (ground band, surround) that does not match the partial clouds is refused with
+    one clear error, not zipped short (a vehicle silently completed without its band, or dropped)."""
     from gd_completion.evaluation.baselines import published_outputs
 
     partial = np.random.default_rng(0).random((300, 3)).astype(np.float32) - 0.5
-    with pytest.raises(ValueError, match="1 partial clouds but 0 ground bands"):
-        completer.complete_normalized([partial], [(4.5, 1.8, 1.5)], bands=[])
-    with pytest.raises(ValueError, match="1 partial clouds but 2 ground bands"):
-        published_outputs(completer.model, [partial], [(4.5, 1.8, 1.5)], bands=[partial[:3], partial[:3]])
+    with pytest.raises(ValueError, match="1 partial clouds but 0 sets of points kept aside"):
+        completer.complete_normalized([partial], [(4.5, 1.8, 1.5)], asides=[])
+    with pytest.raises(ValueError, match="1 partial clouds but 2 sets of points kept aside"):
+        published_outputs(completer.model, [partial], [(4.5, 1.8, 1.5)], asides=[partial[:3], partial[:3]])
 
 
 def test_even_spacing_is_the_same_in_the_pipeline_and_the_evaluation() -> None:
@@ -274,3 +274,28 @@ def test_even_spacing_is_the_same_in_the_pipeline_and_the_evaluation() -> None:
     # spacing moves the network's points: their nearest-neighbour spacing is more even than the raw P_o's
     variation = [(lambda d: d.std() / d.mean())(cKDTree(c).query(c, 2)[0][:, 1]) for c in (raw[0], spaced[0])]
     assert variation[1] < 0.9 * variation[0], variation
+
+
+@pytest.mark.parametrize("pool_margin", [0.4, 0.0])
+def test_a_loose_box_keeps_the_end_it_cuts_off_within_the_pool_margin(completer: VehicleCompleter,
+                                                                      pool_margin: float) -> None:
+    """A car whose box is 0.25 m short of its front: the front's points beyond the crop margin are published as they
+    were measured (generated=0, once each) with a pool margin of 0.4 m, and none of them without one; the points
+    fed to the network and published as its measured points stay the crop's."""
+    car = Box3D((10.0, 3.0, -0.9), (4.5, 1.8, 1.5), 0.3, "car", 7)
+    heading = np.array([math.cos(car.yaw), math.sin(car.yaw), 0.0])
+    loose = Box3D(tuple(np.array(car.center) - 0.125 * heading), (4.25, 1.8, 1.5), car.yaw, "car", 7)
+    points = box_surface_points(car, 3000, np.random.default_rng(5))
+    points = points[normalize(points, car)[:, 2] * car.size[0] > -car.size[2] / 2 + 0.15]   # above the ground cut
+    past = normalize(points, loose)[:, 0] * loose.size[0] > loose.size[0] / 2 + 0.1   # beyond the loose crop's end
+    assert past.sum() >= 20
+    engine = VehicleCompleter(completer.model, pool_margin=pool_margin)
+    result = engine.complete_frame(points, [loose])
+    measured = result.points[result.generated == 0]
+    gap = cKDTree(points[past]).query(measured)[0]
+    on_the_end = measured[gap < 1e-4]
+    if pool_margin:
+        assert len(on_the_end) >= 10 and len(np.unique(on_the_end, axis=0)) == len(on_the_end)
+    else:
+        assert not len(on_the_end)
+    assert not (cKDTree(points[past]).query(result.points[result.generated == 1])[0] < 1e-6).any()

@@ -1,6 +1,8 @@
 """The preprocessing contract: one network input for one cloud and box, whoever calls; stored in checkpoints."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -171,3 +173,26 @@ def test_the_ground_band_in_the_footprint_is_kept_aside_not_fed():
     assert footprint_band(normalize(tyres, box), box, 0.1).all()
     assert not footprint_band(normalize(road, box), box, 0.1).any()
     assert not footprint_band(normalize(body, box), box, 0.1).any()
+
+
+def test_the_surround_within_the_pool_margin_is_kept_aside_not_fed():
+    """With a pool margin wider than the crop's, the points above the ground between the two margins (a vehicle's end
+    that a loose box cuts off) are kept aside as its surround: not among the network's points, not the ground's and
+    not those beyond the pool margin; with no wider pool margin there is none, and an unusable margin is refused."""
+    box = Box3D((10.0, 0.0, 0.75), (4.0, 2.0, 1.5), 0.0, "car", 3)
+    body = np.array([[10.0, 1.0, 1.0], [11.9, 0.9, 1.4], [8.1, -0.9, 0.2], [12.08, 0.0, 0.6]], np.float32)
+    cut_off = np.array([[12.3, 0.2, 0.7], [12.35, -0.3, 1.1], [10.0, -1.35, 0.9]], np.float32)   # 0.1-0.4 m past
+    ground = np.array([[12.3, 0.0, 0.05]], np.float32)        # between the margins, in the ground band: road
+    beyond = np.array([[12.6, 0.0, 0.8], [10.0, 1.5, 0.8]], np.float32)   # past the pool margin
+    points = np.concatenate([body, cut_off, ground, beyond])
+    (vehicle,), _ = crop_vehicles(points, [box], Preprocessing(min_points=4), pool_margin=0.4)
+    np.testing.assert_array_equal(vehicle.measured, body)
+    np.testing.assert_allclose(vehicle.surround, normalize(cut_off, box), atol=1e-6)
+    np.testing.assert_allclose(vehicle.aside, normalize(cut_off, box), atol=1e-6)   # no band here
+    for margin in (0.0, 0.1):   # not wider than the crop's: the crop alone
+        (plain,), _ = crop_vehicles(points, [box], Preprocessing(min_points=4), pool_margin=margin)
+        np.testing.assert_array_equal(plain.measured, body)
+        assert plain.surround.shape == (0, 3)
+    for bad in (-0.1, math.nan, 6.0):
+        with pytest.raises(ValueError, match="pool_margin"):
+            crop_vehicles(points, [box], Preprocessing(min_points=4), pool_margin=bad)

@@ -139,18 +139,18 @@ class NetworkOutputs:
 
 def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
                       sizes: np.ndarray | Sequence[Sequence[float]] | None = None, max_batch: int = 32,
-                      bands: Sequence[np.ndarray] | None = None,
+                      asides: Sequence[np.ndarray] | None = None,
                       spacing: SpacingSettings | None = SHIPPED_SPACING) -> NetworkOutputs:
     """`network_outputs` of partial clouds of any size, their completions evenly spaced (`spacing.even_spacing` with
     `spacing`; None: the raw P_o, as the pipeline's `even_spacing` off) and then merged with a pool of all their
     measured points (`merge.merge_with_pool`), as the pipeline does for single frames and tracks' fused partials
-    alike; `bands`: each cloud's ground-band points (`preprocess.CroppedVehicle.band`), pooled too."""
+    alike; `asides`: the points each cloud's crop kept aside (`preprocess.CroppedVehicle.aside`), pooled too."""
     partials = [np.asarray(p, np.float32).reshape(-1, 3) for p in partials]
-    if bands is not None and len(bands) != len(partials):
-        raise ValueError(f"{len(partials)} partial clouds but {len(bands)} ground bands")
+    if asides is not None and len(asides) != len(partials):
+        raise ValueError(f"{len(partials)} partial clouds but {len(asides)} sets of points kept aside")
     batch = _resampled(partials, model.config.num_input)[0]
     generated, raw, graph = network_forward(model, batch, sizes, max_batch)
     completion = even_spacing(raw, spacing, graph=graph) if spacing is not None else raw.copy()
-    merged = [merge_with_pool(c, p, band=None if bands is None else bands[i]).points
+    merged = [merge_with_pool(c, p, aside=None if asides is None else asides[i]).points
               for i, (p, c) in enumerate(zip(partials, completion))]
     return NetworkOutputs(generated, raw, completion, np.stack(merged) if merged else completion.copy())

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from gd_completion.model.network import GGDNet
-from gd_completion.preprocess import Preprocessing, with_band
+from gd_completion.preprocess import Preprocessing, with_aside
 
 from .baselines import published_outputs
 from .priors import prior_outputs
@@ -253,8 +253,9 @@ def classify(classifier: PointNetClassifier, clouds: Sequence[np.ndarray] | np.n
 class LabelledSet:
     """Observations to classify: normalised partial inputs (any size) with their boxes' sizes (S, 3) (length,
     width, height; m), an upper-bound cloud each (complete shape or aggregate), the label shown per observation
-    (`truth`) and the classes counted right for it (`accepted`, (S, len(CLASSES)) bool); real scans also their
-    ground-band points (`preprocess.CroppedVehicle.band`: measured, not fed to the network, pooled by the merge)."""
+    (`truth`) and the classes counted right for it (`accepted`, (S, len(CLASSES)) bool); real scans also the
+    points their crops kept aside (`preprocess.CroppedVehicle.aside`: measured, not fed to the network, pooled by the
+    merge)."""
 
     name: str
     source: str
@@ -264,7 +265,7 @@ class LabelledSet:
     truth: list[str]
     accepted: np.ndarray
     upper_bound: str = "complete shapes"
-    bands: list[np.ndarray] | None = None
+    asides: list[np.ndarray] | None = None
 
 
 def _one_hot(labels: np.ndarray) -> np.ndarray:
@@ -333,7 +334,7 @@ def pandaset_set(root: str | Path, *, preprocessing: Preprocessing | None = None
         vehicles = dict(list(vehicles.items())[:max_vehicles])
     prep = replace(preprocessing or Preprocessing(), min_points=1)
     tracks = collect_tracks(sequence, vehicles, prep, sensors=tuple(sensors))
-    partials, bands, sizes, complete, truth, accepted = [], [], [], [], [], []
+    partials, asides, sizes, complete, truth, accepted = [], [], [], [], [], []
     n_vehicles = 0
     for track in tracks.values():
         picks = track.input_frames(MIN_INPUT_POINTS, max_per_vehicle)
@@ -344,7 +345,7 @@ def pandaset_set(root: str | Path, *, preprocessing: Preprocessing | None = None
         row = np.isin(CLASSES, pandaset_classes(track.label))
         for k in picks:
             partials.append(np.asarray(track.points[k], np.float32))
-            bands.append(track.bands[k])
+            asides.append(track.asides[k])
             sizes.append(track.boxes[k].size)
             complete.append(aggregate)
             truth.append(track.label)
@@ -354,7 +355,7 @@ def pandaset_set(root: str | Path, *, preprocessing: Preprocessing | None = None
     return LabelledSet("PandaSet 002", where,
                        partials, np.array(sizes, np.float64).reshape(-1, 3), complete, truth,
                        np.array(accepted, bool).reshape(-1, len(CLASSES)),
-                       f"multi-frame aggregate, {n_aggregate} points", bands)
+                       f"multi-frame aggregate, {n_aggregate} points", asides)
 
 
 @dataclass
@@ -404,9 +405,9 @@ def evaluate_set(classifiers: Sequence[PointNetClassifier], model: GGDNet, label
         empty = {n: np.zeros((len(classifiers), 0), np.int64) for n in INPUT_NAMES}
         return SetResult(labelled.name, labelled.source, labelled.upper_bound, [], empty,
                          {n: np.zeros((len(classifiers), 0), bool) for n in INPUT_NAMES})
-    nets = published_outputs(model, labelled.partials, labelled.sizes, max_batch=max_batch, bands=labelled.bands)
-    measured = labelled.partials if labelled.bands is None else \
-        [with_band(p, b) for p, b in zip(labelled.partials, labelled.bands)]
+    nets = published_outputs(model, labelled.partials, labelled.sizes, max_batch=max_batch, asides=labelled.asides)
+    measured = labelled.partials if labelled.asides is None else \
+        [with_aside(p, b) for p, b in zip(labelled.partials, labelled.asides)]
     clouds: dict[str, Sequence[np.ndarray] | np.ndarray] = {
         "input": measured,
         "mirror_template": [prior_outputs(p, s)["mirror_template"] for p, s in zip(measured, labelled.sizes)],

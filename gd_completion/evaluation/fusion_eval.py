@@ -12,7 +12,7 @@ import numpy as np
 from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_sensor
 from gd_completion.geometry import box_problem, finite_mask
 from gd_completion.model.network import GGDNet
-from gd_completion.preprocess import CroppedVehicle, Preprocessing, crop_vehicles
+from gd_completion.preprocess import POOL_MARGIN, CroppedVehicle, Preprocessing, crop_vehicles
 from gd_completion.spacing import SHIPPED_SPACING, SpacingSettings
 
 from .baselines import published_outputs
@@ -54,7 +54,7 @@ class FusedTrack:
     single: list[np.ndarray] = field(default_factory=list)  # normalised (M, 3), every frame
     fused: list[np.ndarray] = field(default_factory=list)   # normalised fused partial, first `max_frames` frames
     sizes: list[tuple[float, ...]] = field(default_factory=list)  # box (length, width, height) per frame
-    bands: list[np.ndarray] = field(default_factory=list)  # the frame's ground-band points (`CroppedVehicle.band`)
+    asides: list[np.ndarray] = field(default_factory=list)  # the frame's points kept aside (`CroppedVehicle.aside`)
     # per frame, as `single`, the contract's crop (normalised): `single`'s arrays unless the inputs were cropped wider
     references: list[np.ndarray] = field(default_factory=list)
 
@@ -213,12 +213,13 @@ def vehicle_tracks(sequence: PandaSetSequence, sensor: int = PANDAR64) -> dict[s
 
 
 def load_frames(sequence: PandaSetSequence, uuids: set[str], prep: Preprocessing, sensor: int = PANDAR64,
-                frames: Sequence[int] | None = None, input_margin: float | None = None
-                ) -> list[tuple[int, list[CroppedVehicle], list[CroppedVehicle]]]:
+                frames: Sequence[int] | None = None, input_margin: float | None = None,
+                pool_margin: float = POOL_MARGIN) -> list[tuple[int, list[CroppedVehicle], list[CroppedVehicle]]]:
     """(frame, vehicles of `uuids` cropped for the network, the same cropped by the contract `prep`) per frame in
     time order, the two lists in the same order; world-frame boxes and points. `input_margin`
     (`pandaset_eval.input_preprocessing`): the first list's crop margin, wider than the contract's (None or the
-    contract's: both lists are the same); a vehicle the contract's crop does not hold is left out of both."""
+    contract's: both lists are the same); a vehicle the contract's crop does not hold is left out of both.
+    `pool_margin`: the margin of the points kept aside for the merge (`preprocess.crop_vehicles`), as the pipeline's."""
     inputs = input_preprocessing(prep, input_margin)
     eye, zero = np.eye(3), np.zeros(3)
     out: list[tuple[int, list[CroppedVehicle], list[CroppedVehicle]]] = []
@@ -235,12 +236,12 @@ def load_frames(sequence: PandaSetSequence, uuids: set[str], prep: Preprocessing
         arrays = sequence.load_lidar(index)
         points = arrays["xyz"][arrays["sensor"] == sensor]
         points = points[finite_mask(points)]
-        references = crop_vehicles(points, boxes, prep)[0]
+        references = crop_vehicles(points, boxes, prep, pool_margin)[0]
         if inputs is prep:
             out.append((int(index), references, references))
             continue
         held = [v.box for v in references]   # the same boxes, so a wider crop holds each of them too
-        out.append((int(index), crop_vehicles(points, held, inputs)[0], references))
+        out.append((int(index), crop_vehicles(points, held, inputs, pool_margin)[0], references))
     return out
 
 
@@ -265,12 +266,13 @@ class FusedDrive:
 
 def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles: int | None = None,
                preprocessing: Preprocessing | None = None, frames: Sequence[int] | None = None,
-               fusion_factory: Callable[[], Fusion] | None = None, input_margin: float | None = None) -> FusedDrive:
+               fusion_factory: Callable[[], Fusion] | None = None, input_margin: float | None = None,
+               pool_margin: float = POOL_MARGIN) -> FusedDrive:
     """Feed PandaSet's vehicles (Pandar64, time order) frame by frame to a fresh fusion, each vehicle's first
     `max_frames` frames (None: all); `max_vehicles`: the first N stationary and first N moving vehicles with
     >= MIN_INPUT_POINTS points in one frame. `fusion_factory`: default `gd_completion.fusion.TrackFusion`.
     `input_margin`: the crop margin of what the fusion is fed (the node's `crop_margin`; `load_frames`); the
-    references and the points counted keep the contract's crop."""
+    references and the points counted keep the contract's crop; `pool_margin`: as `load_frames`."""
     if fusion_factory is None:
         from gd_completion.fusion import TrackFusion
         fusion_factory = TrackFusion
@@ -280,7 +282,7 @@ def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles:
     sequence = PandaSetSequence(root)
     kinds = vehicle_tracks(sequence)
     prep = replace(preprocessing or Preprocessing(), min_points=1)
-    loaded = load_frames(sequence, set(kinds), prep, frames=frames, input_margin=input_margin)
+    loaded = load_frames(sequence, set(kinds), prep, frames=frames, input_margin=input_margin, pool_margin=pool_margin)
     ids = {sequence.track_ids.get(u, 0): u for u in kinds}
     tracks = {i: FusedTrack(u, i, *kinds[u]) for i, u in ids.items()}
     for index, vehicles, references in loaded:
@@ -290,7 +292,7 @@ def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles:
             track.single.append(vehicle.normalized)
             track.references.append(reference.normalized)
             track.sizes.append(vehicle.box.size)
-            track.bands.append(vehicle.band)
+            track.asides.append(vehicle.aside)
     seen = [t for t in tracks.values() if any(t.usable(p) for p in range(len(t.frames)))]
     chosen = {t.instance_id: t for group in (True, False)
               for t in [t for t in seen if t.stationary == group][:max_vehicles]}
@@ -317,8 +319,8 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
                     max_vehicles: int | None = None, reference_points: int = REFERENCE_POINTS, max_batch: int = 32,
                     preprocessing: Preprocessing | None = None, frames: Sequence[int] | None = None,
                     fusion_factory: Callable[[], Fusion] | None = None,
-                    spacing: SpacingSettings | None = SHIPPED_SPACING, input_margin: float | None = None
-                    ) -> FusionResult:
+                    spacing: SpacingSettings | None = SHIPPED_SPACING, input_margin: float | None = None,
+                    pool_margin: float = POOL_MARGIN) -> FusionResult:
     """Feed PandaSet's vehicles frame by frame to TrackFusion and complete the fused partials.
 
     Coverage (stationary vehicles seen in >= 2 frames, reference = all frames' points): the raw fused points,
@@ -326,12 +328,13 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     all of them); at k = RATIO_FRAMES also `library_oracle` with the other stationary vehicles' references.
     Consistency (stationary and moving): Chamfer between completions in consecutive frames among the first
     `consistency_frames` frames of each vehicle, frames with >= MIN_INPUT_POINTS points only.
-    `max_vehicles`, `frames`, `fusion_factory`, `input_margin`: as `fuse_drive`; `spacing`: the completions' even
-    spacing (as `published_outputs`; None: off).
+    `max_vehicles`, `frames`, `fusion_factory`, `input_margin`, `pool_margin`: as `fuse_drive`; `spacing`: the
+    completions' even spacing (as `published_outputs`; None: off).
     """
     max_frames = None if max_frames is None else max(1, max_frames)
     drive = fuse_drive(root, max_frames=max_frames, max_vehicles=max_vehicles, preprocessing=preprocessing,
-                       frames=frames, fusion_factory=fusion_factory, input_margin=input_margin)
+                       frames=frames, fusion_factory=fusion_factory, input_margin=input_margin,
+                       pool_margin=pool_margin)
     chosen, dropped, seconds = drive.tracks, drive.dropped, dict(drive.seconds)
 
     t2 = time.perf_counter()
@@ -343,10 +346,10 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     # (the published completion: the network's after the measured merge, as the pipeline gives it)
     fused_in = [chosen[i].fused[p] for i, p in fused_keys]
     fused = published_outputs(model, fused_in, np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(-1, 3),
-                              max_batch=max_batch, bands=[chosen[i].bands[p] for i, p in fused_keys], spacing=spacing)
+                              max_batch=max_batch, asides=[chosen[i].asides[p] for i, p in fused_keys], spacing=spacing)
     single_in = [chosen[i].single[p] for i, p in single_keys]
     single = published_outputs(model, single_in, np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(
-        -1, 3), max_batch=max_batch, bands=[chosen[i].bands[p] for i, p in single_keys], spacing=spacing)
+        -1, 3), max_batch=max_batch, asides=[chosen[i].asides[p] for i, p in single_keys], spacing=spacing)
     fused_done, single_done = dict(zip(fused_keys, fused.published)), dict(zip(single_keys, single.published))
     fused_network, single_network = dict(zip(fused_keys, fused.completion)), dict(zip(single_keys, single.completion))
     seconds["network"] = time.perf_counter() - t2

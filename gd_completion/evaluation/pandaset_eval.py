@@ -14,7 +14,7 @@ from gd_completion.datasets.pandaset import PandaSetSequence, world_box_to_senso
 from gd_completion.errors import DataFormatError
 from gd_completion.geometry import Box3D, box_problem, finite_mask, normalize
 from gd_completion.model.network import GGDNet
-from gd_completion.preprocess import CroppedVehicle, Preprocessing, above_ground, crop_vehicles, with_band
+from gd_completion.preprocess import POOL_MARGIN, CroppedVehicle, Preprocessing, above_ground, crop_vehicles, with_aside
 
 from .baselines import BASELINE_NAMES, mirror_symmetry, published_outputs
 from .box_noise import BoxNoise, noisy_box, reframe
@@ -73,7 +73,7 @@ class VehicleTrack:
     sensors: list[int] = field(default_factory=list)  # PandaSet sensor id per entry
     origins: list[np.ndarray] = field(default_factory=list)  # world sensor position (poses.json) per entry
     noisy: list[CroppedVehicle | None] = field(default_factory=list)  # the crop of the noisy box
-    bands: list[np.ndarray] = field(default_factory=list)  # normalised (K, 3) per entry: `CroppedVehicle.band`
+    asides: list[np.ndarray] = field(default_factory=list)  # normalised (K, 3) per entry: `CroppedVehicle.aside`
     in_box: list[np.ndarray] = field(default_factory=list)  # normalised (M', 3) per entry: every point inside
     # the exact box (no crop margin), the ground band (the lowest `ground_clearance` of the box) included
     reference: list[np.ndarray] = field(default_factory=list)  # normalised (R, 3) per entry: the contract's crop
@@ -153,7 +153,7 @@ def wider_margin(prep: Preprocessing, input_margin: float | None) -> float | Non
 def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: Preprocessing, *,
                    frames: Sequence[int] | None = None, sensors: Sequence[int] = (PANDAR64,),
                    noise: BoxNoise | None = None, noise_min_points: int = MIN_INPUT_POINTS,
-                   input_margin: float | None = None) -> dict[str, VehicleTrack]:
+                   input_margin: float | None = None, pool_margin: float = POOL_MARGIN) -> dict[str, VehicleTrack]:
     """In-box points of `vehicles` (uuid -> class) per frame and sensor, through the preprocessing contract
     (`prep`).
 
@@ -164,9 +164,10 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
     entry also keeps all its points inside the exact box (no crop margin: the road beside the vehicle is not
     vehicle), the ground band below `prep.ground_clearance` included (`in_box`).
     `input_margin` (metres; default `prep.crop_margin`): the crop margin of the inputs, the exact and the noisy
-    boxes' (`points`, `bands`, `noisy`); the references keep `prep`'s (`reference`) or the exact box (`in_box`). It
+    boxes' (`points`, `asides`, `noisy`); the references keep `prep`'s (`reference`) or the exact box (`in_box`). It
     can only widen the contract's (ValueError; `Preprocessing` bounds it above), so an entry's inputs hold its
-    reference's points.
+    reference's points. `pool_margin` (metres): the inputs' points kept aside for the merge within it (`asides`,
+    `noisy`; `preprocess.crop_vehicles`), as the pipeline's.
     """
     inputs = input_preprocessing(prep, input_margin)
     tracks = {uuid: VehicleTrack(uuid, sequence.track_ids.get(uuid, 0), label) for uuid, label in vehicles.items()}
@@ -186,8 +187,8 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
                 continue
             points = arrays["xyz"][arrays["sensor"] == sensor]
             points = points[finite_mask(points)]
-            cropped = crop_vehicles(points, boxes, prep)[0]
-            given = cropped if inputs is prep else crop_vehicles(points, boxes, inputs)[0]
+            cropped = crop_vehicles(points, boxes, prep, pool_margin)[0]   # the surround is not in `normalized`
+            given = cropped if inputs is prep else crop_vehicles(points, boxes, inputs, pool_margin)[0]
             entered = {v.box.instance_id: v for v in given}
             in_box = {v.box.instance_id: v.normalized for v in crop_vehicles(
                 points, boxes, replace(prep, crop_margin=0.0, ground_clearance=0.0, min_points=1))[0]}
@@ -195,14 +196,14 @@ def collect_tracks(sequence: PandaSetSequence, vehicles: dict[str, str], prep: P
             if noise is not None:
                 shaken = [noisy_box(v.box, noise, (v.box.instance_id, index, sensor)) for v in cropped
                           if len(v.normalized) >= noise_min_points]
-                noisy = {v.box.instance_id: v for v in crop_vehicles(points, shaken, inputs)[0]}
+                noisy = {v.box.instance_id: v for v in crop_vehicles(points, shaken, inputs, pool_margin)[0]}
             for vehicle in cropped:
                 track = by_id[vehicle.box.instance_id]
                 entry = entered[vehicle.box.instance_id]   # the wider crop holds the reference's points
                 track.frames.append(int(index))
                 track.reference.append(vehicle.normalized)
                 track.points.append(entry.normalized)
-                track.bands.append(entry.band)
+                track.asides.append(entry.aside)
                 track.boxes.append(vehicle.box)
                 track.sensors.append(int(sensor))
                 track.origins.append(np.asarray(origin, np.float64))
@@ -221,6 +222,12 @@ def near_a_side(normalized: np.ndarray, box: Box3D, zone: float = BAND_SIDE_ZONE
     """Bool (M,): normalised points within `zone` metres of the box's left or right side (|y| beyond half the
     width less `zone`); the strips under the front and rear overhangs are not."""
     return np.abs(normalized[:, 1]) * box.size[0] >= box.size[1] / 2 - zone
+
+
+def outside_box(normalized: np.ndarray, box: Box3D, margin: float) -> np.ndarray:
+    """Bool (M,): normalised points outside `box` grown by `margin` metres on every side."""
+    half = (np.asarray(box.size, np.float64) / 2 + margin) / box.size[0]
+    return (np.abs(normalized) > half).any(axis=1)
 
 
 def placement_floor(reference: np.ndarray, perfect: np.ndarray, placed_by: Box3D, true_box: Box3D) -> float:
@@ -275,7 +282,8 @@ class PandaSetItem:
     point inside the exact box, ground band included, and band_coverage its points in the band only (NaN where it
     has none), band_sides and band_under the band's points within `BAND_SIDE_ZONE` of a side and the others,
     band_side_share the share of the band's points near a side; fidelity_band: every point of the frame inside the
-    exact box, band included, to the output; noisy_coverage: the box-noise run
+    exact box, band included, to the output; outside_crop: the share of the output's points outside the exact box
+    grown by the contract's crop margin (published beside the vehicle); noisy_coverage: the box-noise run
     (random reference, clean box's frame; NaN when the noisy crop was empty); precision, judged, recall,
     f_score: the two-sided metric of `observed` (fractions); placement_floor: `placement_floor` of the exact and
     the noisy box (box-noise run only)."""
@@ -300,6 +308,7 @@ class PandaSetItem:
     band_sides: dict[str, float] = field(default_factory=dict)   # the band's points near a side (`near_a_side`)
     band_under: dict[str, float] = field(default_factory=dict)   # the band's other points (under the body)
     band_side_share: float = math.nan   # share of the reference's band points near a side
+    outside_crop: dict[str, float] = field(default_factory=dict)   # share of the output beside the contract's crop
     output_points: dict[str, int] = field(default_factory=dict)
     placement_floor: tuple[float, float] | None = None   # (exact box, noisy box): see `placement_floor`
 
@@ -321,14 +330,15 @@ class PandaSetResult:
     random_points: int = RANDOM_REFERENCE_POINTS
     voxel_points: int = REFERENCE_POINTS
     input_margin: float | None = None   # the inputs' crop margin when wider than the contract's
+    pool_margin: float | None = None    # the margin of the points kept aside for the merge, when wider than the inputs'
 
 
 def reduced_observations(root: str | Path, max_frames_per_vehicle: int = 8
                          ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """The reduced protocol's observations, for quick comparisons (`benchmarks/merge_variants.py`,
-    `benchmarks/spacing_variants.py`): (normalised partial, box size, random multi-frame reference, ground-band
-    points) of at most `max_frames_per_vehicle` frames x sensors of every stationary vehicle seen in more than one
-    frame, exact boxes."""
+    `benchmarks/spacing_variants.py`): (normalised partial, box size, random multi-frame reference, the points kept
+    aside for the merge: the ground band and the surround within `preprocess.POOL_MARGIN`) of at most
+    `max_frames_per_vehicle` frames x sensors of every stationary vehicle seen in more than one frame, exact boxes."""
     sequence = PandaSetSequence(root)
     tracks = collect_tracks(sequence, stationary_vehicles(sequence, SENSORS), replace(Preprocessing(), min_points=1),
                             sensors=SENSORS)
@@ -337,7 +347,7 @@ def reduced_observations(root: str | Path, max_frames_per_vehicle: int = 8
         picks = track.input_frames(MIN_INPUT_POINTS, max_frames_per_vehicle)
         if picks and len(set(track.frames)) > 1:
             reference = random_reference(track.aggregate(), RANDOM_REFERENCE_POINTS, seed=track.instance_id)
-            observations += [(track.points[k], np.array(track.boxes[k].size), reference, track.bands[k])
+            observations += [(track.points[k], np.array(track.boxes[k].size), reference, track.asides[k])
                              for k in picks]
     return observations
 
@@ -347,7 +357,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
                       random_points: int = RANDOM_REFERENCE_POINTS, max_batch: int = 32, n_examples: int = 4,
                       frames: Sequence[int] | None = None, preprocessing: Preprocessing | None = None,
                       sensors: Sequence[int] = SENSORS, noise: BoxNoise | None = DEFAULT_BOX_NOISE,
-                      input_margin: float | None = None) -> PandaSetResult:
+                      input_margin: float | None = None, pool_margin: float = POOL_MARGIN) -> PandaSetResult:
     """Complete single observations (frame, sensor) of every stationary PandaSet vehicle and compare every
     method with the vehicle's multi-frame aggregate (all frames, all `sensors`).
 
@@ -356,7 +366,8 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     observation is evaluated; `max_frames_per_vehicle` keeps at most that many per vehicle (evenly spaced),
     `max_vehicles` the first N stationary vehicles. Vehicles seen in a single frame are left out (no
     multi-frame reference). `noise`: also run the evaluation with noisy boxes (None skips it). `input_margin`: the
-    inputs' crop margin (metres; default the contract's), the references' stays the contract's (`collect_tracks`).
+    inputs' crop margin (metres; default the contract's), the references' stays the contract's (`collect_tracks`);
+    `pool_margin`: the margin of the points kept aside for the merge (`preprocess.crop_vehicles`), as the pipeline's.
     """
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -369,7 +380,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     prep = replace(preprocessing or Preprocessing(), min_points=1)
     input_margin = wider_margin(prep, input_margin)
     tracks = collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=noise,
-                            input_margin=input_margin)
+                            input_margin=input_margin, pool_margin=pool_margin)
     seconds["load+crop"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -403,12 +414,12 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     t2 = time.perf_counter()
     partials = [t.points[k] for t, k in meta]
     sizes = np.array([t.boxes[k].size for t, k in meta], np.float64).reshape(-1, 3)
-    clean = published_outputs(model, partials, sizes, max_batch=max_batch, bands=[t.bands[k] for t, k in meta])
+    clean = published_outputs(model, partials, sizes, max_batch=max_batch, asides=[t.asides[k] for t, k in meta])
     noisy_meta = [i for i, (t, k) in enumerate(meta) if noise is not None and t.noisy[k] is not None]
     noisy_in = [crop for i in noisy_meta if (crop := meta[i][0].noisy[meta[i][1]]) is not None]
     noisy = published_outputs(model, [v.normalized for v in noisy_in],
                               np.array([v.box.size for v in noisy_in], np.float64).reshape(-1, 3), max_batch=max_batch,
-                              bands=[v.band for v in noisy_in])
+                              asides=[v.aside for v in noisy_in])
     noisy_nets = {i: (noisy.generated[j], noisy.raw[j], noisy.completion[j], noisy.published[j])
                   for j, i in enumerate(noisy_meta)}
     seconds["network"] = time.perf_counter() - t2
@@ -419,7 +430,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     for i, (track, k) in enumerate(meta):
         partial, box = track.points[k], track.boxes[k]
         ref_random, ref_voxel, images = refs[track.uuid]
-        outputs = _method_outputs(partial, track.bands[k], box.size, n_out, clean.generated[i], clean.raw[i],
+        outputs = _method_outputs(partial, track.asides[k], box.size, n_out, clean.generated[i], clean.raw[i],
                                    clean.completion[i], clean.published[i])
         seen = len(track.reference[k])   # the bucket: the contract's count, whatever the input margin
         item = PandaSetItem(track.uuid, track.label, track.frames[k], track.sensors[k], seen, size_bin(seen), {}, {})
@@ -437,6 +448,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             item.precision[name], item.judged[name] = two.precision, two.judged_share
             item.recall[name], item.f_score[name] = two.recall, two.f_score
             item.output_points[name] = len(out)
+            item.outside_crop[name] = float(outside_box(out, box, prep.crop_margin).mean())
             to_band = nearest_sq(band_refs[track.uuid], out)
             item.coverage_band[name] = float(to_band.mean()) * COVERAGE_SCALE if len(to_band) else math.nan
             for zone, values in ((low, item.band_coverage), (sides, item.band_sides), (under, item.band_under)):
@@ -447,7 +459,7 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
             crop = track.noisy[k]
             assert crop is not None   # k is in noisy_nets
             shaken = crop.box
-            shaken_outputs = _method_outputs(crop.normalized, crop.band, shaken.size, n_out, *noisy_nets[i])
+            shaken_outputs = _method_outputs(crop.normalized, crop.aside, shaken.size, n_out, *noisy_nets[i])
             stacked = reframe(np.concatenate([shaken_outputs[n] for n in BASELINE_NAMES]), shaken, box)
             bounds = np.cumsum(np.array([0] + [len(shaken_outputs[n]) for n in BASELINE_NAMES]))
             for j, name in enumerate(BASELINE_NAMES):
@@ -463,15 +475,17 @@ def evaluate_pandaset(model: GGDNet, root: str | Path, *, max_frames_per_vehicle
     examples = _examples(items, meta, clean.published, refs, n_examples)
     worst = _worst(items, meta, clean.published, refs, n_examples)
     return PandaSetResult(items, len(refs), n_candidates, max_frames_per_vehicle, seconds, examples, notes, worst,
-                          sensors, noise, random_points, reference_points, input_margin)
+                          sensors, noise, random_points, reference_points, input_margin,
+                          pool_margin if pool_margin > input_preprocessing(prep, input_margin).crop_margin else None)
 
 
-def _method_outputs(partial: np.ndarray, band: np.ndarray, size: Sequence[float], n_out: int, generation: np.ndarray,
+def _method_outputs(partial: np.ndarray, aside: np.ndarray, size: Sequence[float], n_out: int, generation: np.ndarray,
                     raw: np.ndarray, completion: np.ndarray, merged: np.ndarray) -> dict[str, np.ndarray]:
-    """Every method's output (`BASELINE_NAMES`) for one normalised partial, its ground-band points `band` (the
-    measured points the network is not fed, pooled by the merge: the input and the box priors get them too) and its
-    box `size`, given the network's generation-only, raw, evenly spaced and merged outputs."""
-    measured = with_band(partial, band)
+    """Every method's output (`BASELINE_NAMES`) for one normalised partial, the points its crop kept aside `aside`
+    (`preprocess.CroppedVehicle.aside`: measured points the network is not fed, pooled by the merge; the input and
+    the box priors get them too) and its box `size`, given the network's generation-only, raw, evenly spaced and
+    merged outputs."""
+    measured = with_aside(partial, aside)
     return {"input": measured, "mirror": mirror_symmetry(measured),
             **prior_outputs(measured, np.asarray(size), n_out),
             "generation": generation, "ggd_raw": raw, "ggd": completion, "ggd_merge": merged}

@@ -3,12 +3,14 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
 
 from gd_completion.atomic import make_folder
 from gd_completion.errors import EvaluationError
+from gd_completion.preprocess import POOL_MARGIN
 
 # torch, the model and the evaluation modules are imported in run_evaluation: `--help` stays light.
 
@@ -48,8 +50,12 @@ def run_evaluation(args: argparse.Namespace) -> int:
                                   "--synthetic-samples 0)")
         if value is not None and value < 1:
             raise EvaluationError(f"{name} {value}: at least one")
-    if args.crop_margin is not None and args.no_pandaset:
-        raise EvaluationError("--crop-margin: the PandaSet part is skipped (--no-pandaset)")
+    for name, value in (("--crop-margin", args.crop_margin), ("--pool-margin", args.pool_margin)):
+        if value is not None and args.no_pandaset:
+            raise EvaluationError(f"{name}: the PandaSet part is skipped (--no-pandaset)")
+    if args.pool_margin is not None and not (math.isfinite(args.pool_margin) and 0.0 <= args.pool_margin <= 5.0):
+        raise EvaluationError(f"--pool-margin {args.pool_margin}: a margin in metres, in [0, 5]")
+    pool_margin = POOL_MARGIN if args.pool_margin is None else args.pool_margin
     synthetic_seed = EVAL_SEED if args.synthetic_seed is None else args.synthetic_seed
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -148,7 +154,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
                                    max_frames_per_vehicle=args.max_frames_per_vehicle or None,
                                    max_vehicles=args.max_vehicles, max_batch=args.max_batch,
                                    sensors=tuple(args.sensors), random_points=args.random_reference_points,
-                                   noise=noise, input_margin=input_margin)
+                                   noise=noise, input_margin=input_margin, pool_margin=pool_margin)
         emit(pandaset_section(result, num_control=model.config.num_control, num_input=model.config.num_input))
         write_renders(out, "pandaset_vehicles.png", result.examples)
         write_renders(out, "pandaset_worst.png", result.worst)
@@ -166,7 +172,8 @@ def run_evaluation(args: argparse.Namespace) -> int:
             fused = evaluate_fusion(model, pandaset, preprocessing=preprocessing, max_frames=args.fusion_max_frames,
                                     consistency_frames=args.fusion_consistency_frames,
                                     max_vehicles=args.fusion_max_vehicles, max_batch=args.max_batch,
-                                    input_margin=input_margin, fusion_factory=lambda: TrackFusion(
+                                    input_margin=input_margin, pool_margin=pool_margin,
+                                    fusion_factory=lambda: TrackFusion(
                                         FusionLimits(align=None) if args.no_fusion_align else FusionLimits()))
             emit(fusion_section(fused))
             steps = ", ".join(f"{k} {v:.1f} s" for k, v in fused.seconds.items())
@@ -181,9 +188,9 @@ def run_evaluation(args: argparse.Namespace) -> int:
             threads = torch.get_num_threads()
             inputs = input_preprocessing(preprocessing, input_margin)   # the completers crop as the node would
             reused = evaluate_reuse(pandaset, lambda ids, reuse: VehicleCompleter(
-                model, preprocessing=inputs, limits=OFFLINE_LIMITS, track_ids=ids,
+                model, preprocessing=inputs, limits=OFFLINE_LIMITS, track_ids=ids, pool_margin=pool_margin,
                 reuse=ReuseSettings() if reuse else None), preprocessing=preprocessing, frames=args.reuse_frames,
-                input_margin=input_margin)
+                input_margin=input_margin, pool_margin=pool_margin)
             torch.set_num_threads(threads)
             emit(reuse_section(reused))
             steps = ", ".join(f"{k} {v:.1f} s" for k, v in reused.seconds.items())
@@ -239,6 +246,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="crop margin of the PandaSet parts' inputs (single frames with exact and noisy boxes, "
                              "track fusion, completion reuse; default: the checkpoint's contract; only wider): the "
                              "node's crop_margin; the references and the classification part keep the contract's")
+    parser.add_argument("--pool-margin", type=float, default=None, metavar="METRES",
+                        help="margin of the measured points the merge publishes beside the crop, not fed to the "
+                             "network, in the PandaSet parts (single frames with exact and noisy boxes, track "
+                             f"fusion, completion reuse; default {POOL_MARGIN}, the node's pool_margin; 0: the "
+                             "crop's points only); the classification part keeps the default")
     parser.add_argument("--no-fusion", action="store_true", help="skip the PandaSet track-fusion part")
     parser.add_argument("--no-reuse", action="store_true", help="skip the PandaSet completion-reuse part")
     parser.add_argument("--reuse-frames", type=int, default=None,
