@@ -11,8 +11,9 @@ A SPEC is `pool:VOXEL:NETWORK_WEIGHT:MIRROR_WEIGHT` (one measured point per VOXE
 weights of the weighted FPS, `kernels.fps_pruned`), `fed` (the 512 points fed to the network, unweighted: the
 merge before model v3) or `sor:K:Z` (the shipped merge after dropping the completion's points whose mean distance
 to their K nearest is above the mean + Z standard deviations); the variants pool the points above the ground cut only.
-The shipped merge is `merge.merge_with_pool` with the ground band's points in the box's footprint pooled too, as the
-pipeline does (printed as "shipped"); the mirror + template prior gets those points as well."""
+The shipped merge is `merge.merge_with_pool` with the points the crop kept aside pooled too (the ground band in the
+box's footprint and, since the pool margin, the surround within `preprocess.POOL_MARGIN`), as the pipeline does
+(printed as "shipped"); the mirror + template prior gets those points as well."""
 from __future__ import annotations
 
 import argparse
@@ -34,7 +35,7 @@ from gd_completion.preprocess import with_aside
 from gd_completion.sampling import voxel_first_indices
 from gd_completion.spacing import even_spacing
 
-# (completion, partial, rows fed to the network, box size, ground-band points) -> output points
+# (completion, partial, rows fed to the network, box size, points kept aside) -> output points
 Merge = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 

@@ -1,5 +1,5 @@
 """Even-spacing variants (`spacing.even_spacing`) measured on both evaluation sets in one run, each followed by the
-shipped merge (`merge.merge_with_pool`, the ground band pooled on PandaSet):
+shipped merge (`merge.merge_with_pool`, the points kept aside pooled on PandaSet: ground band, surround):
 
 - PandaSet-002's reduced protocol (at most 8 observations per vehicle, both sensors, exact boxes; as
   `benchmarks/merge_variants.py`): coverage error x1e3 of the network's points (spaced, before the merge) and of

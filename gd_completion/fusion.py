@@ -163,7 +163,11 @@ class TrackFusion:
             out = list(vehicles)
             for row, (track, metres, kept), transform in zip(fused_rows, prepared, fits):
                 fused, current = self._store(track, vehicles[row], metres, kept, transform)
-                out[row] = replace(vehicles[row], normalized=fused, current_source=current)
+                # the frame's surround (points beside its crop) is not pooled for a track: it changes from frame to
+                # frame (costing the track's consistency), and the frames' own crops, each cut by its own box,
+                # already bring back what one loose box cuts off
+                out[row] = replace(vehicles[row], normalized=fused, current_source=current,
+                                   surround=np.zeros((0, 3), np.float32))
             return out
 
     def _prepare(self, stamp_ns: int, vehicle: CroppedVehicle) -> tuple[_Track, np.ndarray, np.ndarray]:

@@ -26,7 +26,7 @@ from gd_completion.merge import merge_with_pool
 from gd_completion.model.box_refiner import box_from_frame
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
-from gd_completion.preprocess import POOL_MARGIN, CroppedVehicle, Preprocessing, crop_vehicles
+from gd_completion.preprocess import POOL_MARGIN, CroppedVehicle, Preprocessing, check_pool_margin, crop_vehicles
 from gd_completion.registration import align_planar
 from gd_completion.reuse import DUE_UNCACHED, CachedCompletion, CompletionCache, Decision, ReuseSettings
 from gd_completion.sampling import resample_indices
@@ -152,7 +152,7 @@ class VehicleCompleter:
         self.publish_fused_points = bool(publish_fused_points)
         self.measured_merge = bool(measured_merge)
         self.even_spacing = bool(even_spacing)
-        self.pool_margin = float(pool_margin)   # metres: points kept aside for the merge (`crop_vehicles`)
+        self.pool_margin = check_pool_margin(pool_margin)   # metres: points kept aside for the merge (`crop_vehicles`)
         if track_ids not in TRACK_ID_MODES:
             raise ValueError(f"track_ids={track_ids!r} must be one of {TRACK_ID_MODES}")
         self.track_ids = track_ids
@@ -465,7 +465,7 @@ class VehicleCompleter:
     def _cached_output(self, cached: CachedCompletion, include: bool) -> tuple[np.ndarray, np.ndarray]:
         """A cached completion as published: with the measured points published, its points that were measured
         above the ground cut when it was made are left out (this frame's measured points take their place; its kept
-        ground-band points stay); else all of them; generated=1 (they are not this frame's measurements)."""
+        points kept aside stay); else all of them; generated=1 (they are not this frame's measurements)."""
         points = cached.generated if include else cached.points
         return points, np.ones(len(points), np.uint8)
 

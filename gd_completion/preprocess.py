@@ -117,18 +117,18 @@ def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessin
                   ) -> tuple[list[CroppedVehicle], list[Box3D]]:
     """(vehicles with at least `min_points` points above the ground, boxes skipped for too few points); each
     vehicle also keeps its ground band's points in the footprint (`CroppedVehicle.band`) and, when `pool_margin`
-    (metres) is wider than `prep.crop_margin`, the points above the ground in the box grown by `pool_margin` but not
-    in the crop (`CroppedVehicle.surround`).
+    (metres) is wider than `prep.crop_margin`, the points above the ground in the box grown by `pool_margin` that no
+    box's crop holds (`CroppedVehicle.surround`; a point near several boxes goes to the nearest: `surround_indices`).
 
     `points` (N, 3) finite, `boxes` valid (see `geometry.box_problem`); both in the same frame.
     """
-    if not (math.isfinite(pool_margin) and 0.0 <= pool_margin <= 5.0):
-        raise ValueError(f"pool_margin={pool_margin} must be in [0, 5] metres")
+    pool_margin = check_pool_margin(pool_margin)
     points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     vehicles: list[CroppedVehicle] = []
     too_few: list[Box3D] = []
     crops = crop_boxes(points, boxes, prep.crop_margin)
-    pools = crop_boxes(points, boxes, pool_margin) if pool_margin > prep.crop_margin else [None] * len(crops)
+    pools = surround_indices(points, boxes, crops, pool_margin) if pool_margin > prep.crop_margin \
+        else [None] * len(crops)
     for box, idx, pool in zip(boxes, crops, pools):
         measured = points[idx]
         normalized = normalize(measured, box).astype(np.float32, copy=False)
@@ -139,10 +139,44 @@ def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessin
         band = normalized[footprint_band(normalized, box, prep.ground_clearance)]
         surround = np.zeros((0, 3), np.float32)
         if pool is not None:
-            around = normalize(points[pool[~np.isin(pool, idx, assume_unique=True)]], box).astype(np.float32)
+            around = normalize(points[pool], box)
             surround = around[above_ground(around, box, prep.ground_clearance)]
         vehicles.append(CroppedVehicle(box, measured[keep], normalized[keep], band=band, surround=surround))
     return vehicles, too_few
+
+
+def check_pool_margin(pool_margin: float) -> float:
+    """`pool_margin` as a float; ValueError unless it is a finite margin in [0, 5] metres."""
+    if not (math.isfinite(pool_margin) and 0.0 <= pool_margin <= 5.0):
+        raise ValueError(f"pool_margin={pool_margin} must be in [0, 5] metres")
+    return float(pool_margin)
+
+
+def surround_indices(points: np.ndarray, boxes: Sequence[Box3D], crops: Sequence[np.ndarray], pool_margin: float
+                     ) -> list[np.ndarray]:
+    """Per box, the indices of `points` within `pool_margin` metres of it that no box's crop holds (`crops`: the
+    crops' indices), each point given to the one box it lies nearest to (metres outside the box; the first box on a
+    tie), so a neighbour's points are never published as this vehicle's and no point is kept aside twice."""
+    pools = crop_boxes(points, boxes, pool_margin)
+    taken = np.concatenate([np.asarray(c, np.intp) for c in crops]) if len(crops) else np.zeros(0, np.intp)
+    candidates = [pool[~np.isin(pool, taken)] for pool in pools]
+    owner = np.concatenate([np.full(len(c), k, np.intp) for k, c in enumerate(candidates)]) if candidates \
+        else np.zeros(0, np.intp)
+    index = np.concatenate(candidates) if candidates else np.zeros(0, np.intp)
+    if not len(index):
+        return candidates
+    gap = np.concatenate([_outside_distance(points[c], box) for c, box in zip(candidates, boxes)])
+    order = np.lexsort((owner, gap, index))               # by point, then nearest box, then first box
+    first = np.ones(len(order), bool)
+    first[1:] = index[order][1:] != index[order][:-1]
+    kept = order[first]
+    return [np.sort(index[kept][owner[kept] == k]) for k in range(len(boxes))]
+
+
+def _outside_distance(points: np.ndarray, box: Box3D) -> np.ndarray:
+    """(M,) metres from each point to `box` (0 inside it)."""
+    local = normalize(points, box).astype(np.float64) * box.size[0]
+    return np.linalg.norm(np.maximum(np.abs(local) - np.asarray(box.size, np.float64) / 2, 0.0), axis=1)
 
 
 def network_input(normalized: np.ndarray, n: int) -> np.ndarray:

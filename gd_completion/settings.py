@@ -65,10 +65,10 @@ SETTINGS: dict[str, Setting] = {
                               "second thread only contends with the node's other threads).", 0, 256, flag="--threads"),
     "min_points": Setting(0, "Vehicles with fewer measured points above the ground in their box are skipped; 0 = the "
                              "checkpoint's preprocessing (20 for the shipped weights).", 0, 1_000_000, live=True),
-    "crop_margin": Setting(-1.0, "Metres added to each side of a box when cropping its points; -1 = the checkpoint's "
-                                 "preprocessing (0.1 for the shipped weights). With a detector's boxes 0.2 keeps the "
-                                 "ends a box cuts off; with exact boxes it costs frame-to-frame consistency "
-                                 "(docs/MODEL.md).", -1.0, 5.0, live=True),
+    "crop_margin": Setting(-1.0, "Metres added to each side of a box when cropping the points fed to the network; -1 = "
+                                 "the checkpoint's preprocessing (0.1 for the shipped weights, best with exact and "
+                                 "with a detector's boxes alike: pool_margin publishes the ends a box cuts off; "
+                                 "docs/MODEL.md).", -1.0, 5.0, live=True),
     "pool_margin": Setting(POOL_MARGIN, "Metres around a box within which measured points above the ground are "
                                         "published with its completion (pooled by the measured merge, generated=0) "
                                         "though not fed to the network, where wider than the crop margin: the ends "

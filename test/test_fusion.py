@@ -392,3 +392,15 @@ def test_parallel_alignment_gives_the_same_tracks() -> None:
                 np.testing.assert_array_equal(x.normalized, y.normalized)
                 np.testing.assert_array_equal(x.current_source, y.current_source)
     assert serial.counters == parallel.counters and serial.counters["frames_aligned"] > 10
+
+
+def test_a_track_pools_its_frames_ground_band_but_not_their_surround() -> None:
+    """The fused vehicle keeps this frame's ground band (tyres: measured, pooled by the merge) but not the points beside
+    its crop (the surround changes from frame to frame; the frames' own crops bring back what a box cuts off)."""
+    band = np.array([[0.1, 0.2, -0.32]], np.float32)
+    surround = np.array([[0.55, 0.0, 0.0], [0.56, 0.05, 0.1]], np.float32)
+    frame = replace(vehicle(4, distinct(30)), band=band, surround=surround)
+    assert len(frame.aside) == 3
+    (fused,) = TrackFusion().update(0, [frame])
+    np.testing.assert_array_equal(fused.band, band)
+    assert fused.surround.shape == (0, 3) and len(fused.aside) == 1

@@ -196,3 +196,18 @@ def test_the_surround_within_the_pool_margin_is_kept_aside_not_fed():
     for bad in (-0.1, math.nan, 6.0):
         with pytest.raises(ValueError, match="pool_margin"):
             crop_vehicles(points, [box], Preprocessing(min_points=4), pool_margin=bad)
+
+
+def test_a_neighbours_points_are_never_kept_aside_as_this_vehicles():
+    """Two cars 0.3 m apart: a point in one car's crop is never the other's surround, and a point in the gap, in
+    neither crop, is kept aside once, by the car it lies nearer to."""
+    front = Box3D((10.0, 0.0, 0.75), (4.0, 2.0, 1.5), 0.0, "car", 1)    # x 8 .. 12
+    behind = Box3D((14.3, 0.0, 0.75), (4.0, 2.0, 1.5), 0.0, "car", 2)   # x 12.3 .. 16.3
+    bodies = np.array([[9.0, 0.5, 1.0], [11.95, 0.0, 0.8], [12.35, 0.1, 0.8], [15.0, -0.5, 1.0]], np.float32)
+    gap = np.array([[12.13, 0.0, 0.9], [12.17, 0.0, 0.9]], np.float32)   # 0.13 / 0.17 m from the front car
+    vehicles, _ = crop_vehicles(np.concatenate([bodies, gap]), [front, behind], Preprocessing(min_points=1),
+                                pool_margin=0.4)
+    first, second = vehicles
+    np.testing.assert_allclose(first.surround, normalize(gap[:1], front), atol=1e-6)    # nearer the front car
+    np.testing.assert_allclose(second.surround, normalize(gap[1:], behind), atol=1e-6)  # nearer the car behind
+    assert len(first.measured) == 2 and len(second.measured) == 2   # each body point once, in its own crop

@@ -55,6 +55,7 @@ class FusedTrack:
     fused: list[np.ndarray] = field(default_factory=list)   # normalised fused partial, first `max_frames` frames
     sizes: list[tuple[float, ...]] = field(default_factory=list)  # box (length, width, height) per frame
     asides: list[np.ndarray] = field(default_factory=list)  # the frame's points kept aside (`CroppedVehicle.aside`)
+    fused_asides: list[np.ndarray] = field(default_factory=list)   # the same as the fusion hands them out, per `fused`
     # per frame, as `single`, the contract's crop (normalised): `single`'s arrays unless the inputs were cropped wider
     references: list[np.ndarray] = field(default_factory=list)
 
@@ -311,6 +312,7 @@ def fuse_drive(root: str | Path, *, max_frames: int | None = None, max_vehicles:
             out = returned.get(vehicle.box.instance_id)
             dropped += out is None
             chosen[vehicle.box.instance_id].fused.append(np.asarray((out or vehicle).normalized, np.float32))
+            chosen[vehicle.box.instance_id].fused_asides.append((out or vehicle).aside)
     seconds["fusion"] = time.perf_counter() - t1
     return FusedDrive(chosen, dropped, dict(getattr(fusion, "counters", {})), seconds)
 
@@ -346,7 +348,8 @@ def evaluate_fusion(model: GGDNet, root: str | Path, *, max_frames: int | None =
     # (the published completion: the network's after the measured merge, as the pipeline gives it)
     fused_in = [chosen[i].fused[p] for i, p in fused_keys]
     fused = published_outputs(model, fused_in, np.array([chosen[i].sizes[p] for i, p in fused_keys]).reshape(-1, 3),
-                              max_batch=max_batch, asides=[chosen[i].asides[p] for i, p in fused_keys], spacing=spacing)
+                              max_batch=max_batch, asides=[chosen[i].fused_asides[p] for i, p in fused_keys],
+                              spacing=spacing)
     single_in = [chosen[i].single[p] for i, p in single_keys]
     single = published_outputs(model, single_in, np.array([chosen[i].sizes[p] for i, p in single_keys]).reshape(
         -1, 3), max_batch=max_batch, asides=[chosen[i].asides[p] for i, p in single_keys], spacing=spacing)

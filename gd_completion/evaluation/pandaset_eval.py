@@ -73,7 +73,7 @@ class VehicleTrack:
     sensors: list[int] = field(default_factory=list)  # PandaSet sensor id per entry
     origins: list[np.ndarray] = field(default_factory=list)  # world sensor position (poses.json) per entry
     noisy: list[CroppedVehicle | None] = field(default_factory=list)  # the crop of the noisy box
-    asides: list[np.ndarray] = field(default_factory=list)  # normalised (K, 3) per entry: `CroppedVehicle.aside`
+    asides: list[np.ndarray] = field(default_factory=list)  # normalised (K + S, 3) per entry: `CroppedVehicle.aside`
     in_box: list[np.ndarray] = field(default_factory=list)  # normalised (M', 3) per entry: every point inside
     # the exact box (no crop margin), the ground band (the lowest `ground_clearance` of the box) included
     reference: list[np.ndarray] = field(default_factory=list)  # normalised (R, 3) per entry: the contract's crop
@@ -333,15 +333,15 @@ class PandaSetResult:
     pool_margin: float | None = None    # the margin of the points kept aside for the merge, when wider than the inputs'
 
 
-def reduced_observations(root: str | Path, max_frames_per_vehicle: int = 8
+def reduced_observations(root: str | Path, max_frames_per_vehicle: int = 8, pool_margin: float = POOL_MARGIN
                          ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """The reduced protocol's observations, for quick comparisons (`benchmarks/merge_variants.py`,
     `benchmarks/spacing_variants.py`): (normalised partial, box size, random multi-frame reference, the points kept
-    aside for the merge: the ground band and the surround within `preprocess.POOL_MARGIN`) of at most
+    aside for the merge: the ground band and the surround within `pool_margin`) of at most
     `max_frames_per_vehicle` frames x sensors of every stationary vehicle seen in more than one frame, exact boxes."""
     sequence = PandaSetSequence(root)
     tracks = collect_tracks(sequence, stationary_vehicles(sequence, SENSORS), replace(Preprocessing(), min_points=1),
-                            sensors=SENSORS)
+                            sensors=SENSORS, pool_margin=pool_margin)
     observations = []
     for track in tracks.values():
         picks = track.input_frames(MIN_INPUT_POINTS, max_frames_per_vehicle)

@@ -24,7 +24,7 @@ from gd_completion.evaluation.pandaset_eval import (
 )
 from gd_completion.evaluation.priors import mirror_template
 from gd_completion.geometry import normalize
-from gd_completion.preprocess import POOL_MARGIN, Preprocessing
+from gd_completion.preprocess import Preprocessing
 
 # (name, track_ids, reuse on): the runs compared; "fresh" completes every vehicle in every frame
 RUNS: tuple[tuple[str, str, bool], ...] = (("fresh", "message", False), ("reuse, cuboid ids", "message", True),
@@ -88,19 +88,17 @@ def play_sequence(root: str | Path, completer: Any, sensor: int = 0, frames: int
 
 def evaluate_reuse(root: str | Path, completer_factory: Callable[[str, bool], Any], *,
                    preprocessing: Preprocessing | None = None, reference_points: int = REFERENCE_POINTS,
-                   frames: int | None = None, input_margin: float | None = None,
-                   pool_margin: float = POOL_MARGIN) -> ReuseResult:
+                   frames: int | None = None, input_margin: float | None = None) -> ReuseResult:
     """The runs of `RUNS` (`completer_factory(track_ids, reuse)` gives a fresh completer for each), scored on the
     vehicles every run published in a frame (the same vehicle-frames for every row); the first `frames` frames of
     the sequence only when given (references from those frames too). `input_margin`: the crop margin the
     completers use when wider than the contract's (the prior's inputs then use it too; the references and the
-    vehicle-frames scored keep the contract's crop). `pool_margin`: the margin of the points kept aside for the
-    merge by the drive's crops (`fuse_drive`); the completers have their own (`VehicleCompleter.pool_margin`)."""
+    vehicle-frames scored keep the contract's crop). The completers keep their own points aside
+    (`VehicleCompleter.pool_margin`)."""
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     indices = PandaSetSequence(root).frame_indices()[:frames]
-    drive = fuse_drive(root, preprocessing=preprocessing, frames=indices, input_margin=input_margin,
-                       pool_margin=pool_margin)
+    drive = fuse_drive(root, preprocessing=preprocessing, frames=indices, input_margin=input_margin)
     tracks = drive.tracks
     references = {i: multi_frame_reference(t, reference_points) for i, t in tracks.items() if t.stationary}
     seconds["references"] = time.perf_counter() - t0

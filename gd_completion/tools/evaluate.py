@@ -190,7 +190,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
             reused = evaluate_reuse(pandaset, lambda ids, reuse: VehicleCompleter(
                 model, preprocessing=inputs, limits=OFFLINE_LIMITS, track_ids=ids, pool_margin=pool_margin,
                 reuse=ReuseSettings() if reuse else None), preprocessing=preprocessing, frames=args.reuse_frames,
-                input_margin=input_margin, pool_margin=pool_margin)
+                input_margin=input_margin)
             torch.set_num_threads(threads)
             emit(reuse_section(reused))
             steps = ", ".join(f"{k} {v:.1f} s" for k, v in reused.seconds.items())
