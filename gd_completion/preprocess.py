@@ -118,7 +118,7 @@ def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessin
     """(vehicles with at least `min_points` points above the ground, boxes skipped for too few points); each
     vehicle also keeps its ground band's points in the footprint (`CroppedVehicle.band`) and, when `pool_margin`
     (metres) is wider than `prep.crop_margin`, the points above the ground in the box grown by `pool_margin` that no
-    box's crop holds (`CroppedVehicle.surround`; a point near several boxes goes to the nearest: `surround_indices`).
+    box's crop holds (`CroppedVehicle.surround`; a point near several boxes goes to the nearest: `crop_and_surround`).
 
     `points` (N, 3) finite, `boxes` valid (see `geometry.box_problem`); both in the same frame.
     """
@@ -126,9 +126,12 @@ def crop_vehicles(points: np.ndarray, boxes: Sequence[Box3D], prep: Preprocessin
     points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     vehicles: list[CroppedVehicle] = []
     too_few: list[Box3D] = []
-    crops = crop_boxes(points, boxes, prep.crop_margin)
-    pools = surround_indices(points, boxes, crops, pool_margin) if pool_margin > prep.crop_margin \
-        else [None] * len(crops)
+    pools: Sequence[np.ndarray | None]
+    if pool_margin > prep.crop_margin:
+        crops, pools = crop_and_surround(points, boxes, prep.crop_margin, pool_margin)
+    else:
+        crops = crop_boxes(points, boxes, prep.crop_margin)
+        pools = [None] * len(crops)
     for box, idx, pool in zip(boxes, crops, pools):
         measured = points[idx]
         normalized = normalize(measured, box).astype(np.float32, copy=False)
@@ -152,25 +155,40 @@ def check_pool_margin(pool_margin: float) -> float:
     return float(pool_margin)
 
 
-def surround_indices(points: np.ndarray, boxes: Sequence[Box3D], crops: Sequence[np.ndarray], pool_margin: float
-                     ) -> list[np.ndarray]:
-    """Per box, the indices of `points` within `pool_margin` metres of it that no box's crop holds (`crops`: the
-    crops' indices), each point given to the one box it lies nearest to (metres outside the box; the first box on a
-    tie), so a neighbour's points are never published as this vehicle's and no point is kept aside twice."""
+def crop_and_surround(points: np.ndarray, boxes: Sequence[Box3D], crop_margin: float, pool_margin: float
+                      ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per box, the indices of `points` in its crop (`geometry.crop_boxes` with `crop_margin`) and of its surround:
+    the points within `pool_margin` (wider) metres of it that no box's crop holds, each given to the one box it lies
+    nearest to (metres outside the box; the first box on a tie), so a neighbour's points are never published as this
+    vehicle's and no point is kept aside twice. The crops are those of `crop_boxes` on all points (it tests each
+    point on its own), searched among the points near some box only."""
     pools = crop_boxes(points, boxes, pool_margin)
-    taken = np.concatenate([np.asarray(c, np.intp) for c in crops]) if len(crops) else np.zeros(0, np.intp)
-    candidates = [pool[~np.isin(pool, taken)] for pool in pools]
-    owner = np.concatenate([np.full(len(c), k, np.intp) for k, c in enumerate(candidates)]) if candidates \
-        else np.zeros(0, np.intp)
-    index = np.concatenate(candidates) if candidates else np.zeros(0, np.intp)
-    if not len(index):
-        return candidates
-    gap = np.concatenate([_outside_distance(points[c], box) for c, box in zip(candidates, boxes)])
-    order = np.lexsort((owner, gap, index))               # by point, then nearest box, then first box
-    first = np.ones(len(order), bool)
-    first[1:] = index[order][1:] != index[order][:-1]
-    kept = order[first]
-    return [np.sort(index[kept][owner[kept] == k]) for k in range(len(boxes))]
+    if not pools:
+        return [], []
+    near = np.zeros(len(points), bool)
+    for pool in pools:
+        near[pool] = True
+    rows = np.flatnonzero(near)
+    crops = [rows[inside] for inside in crop_boxes(points[rows], boxes, crop_margin)]
+    taken = np.zeros(len(points), bool)
+    for crop in crops:
+        taken[crop] = True
+    candidates = [pool[~taken[pool]] for pool in pools]
+    claims = np.zeros(len(points), np.intp)
+    for candidate in candidates:
+        claims[candidate] += 1
+    if not (claims > 1).any():
+        return crops, candidates
+    # a point near several boxes: the box it lies nearest to keeps it (the first on a tie)
+    shared = np.flatnonzero(claims > 1)
+    gaps = np.full((len(boxes), len(shared)), np.inf)
+    for k, (candidate, box) in enumerate(zip(candidates, boxes)):
+        mine = np.isin(shared, candidate, assume_unique=True)
+        if mine.any():
+            gaps[k, mine] = _outside_distance(points[shared[mine]], box)
+    owner = np.full(len(points), -1, np.intp)
+    owner[shared] = np.argmin(gaps, axis=0)
+    return crops, [c[(owner[c] < 0) | (owner[c] == k)] for k, c in enumerate(candidates)]
 
 
 def _outside_distance(points: np.ndarray, box: Box3D) -> np.ndarray:

@@ -405,6 +405,16 @@ def test_evaluate_command_tiny_run(tmp_path, shared_data, monkeypatch, capsys):
     assert len(band_rows) == 3 and len(band_rows[2]) == 3   # the band near the sides and under the body
     assert "m of the box's left or right side" in band and "% of the band's points on average" in band
     assert any(c != "-" for c in band_rows[2][1:])   # a table printed NaN as "-": some band was scored
+    # the targets' ratios over the prior, from the unrounded means, under both coverage tables
+    coverage = pandaset.split("### Coverage error x1e3 (reference")[1].split("###")[0]
+    for section in (coverage, band):
+        line = next(x for x in section.splitlines() if x.startswith("Over mirror + template, from the unrounded"))
+        published = line.split("published ")[1].split(";")[0].split(" / ")
+        table = {cells(x)[0]: cells(x) for x in section.split("\n\nThat reference")[0].splitlines()
+                 if x.startswith(("| GGD-Net + measured", "| mirror + template"))}
+        ratio = (float(table["GGD-Net + measured merge (published)"][-4])
+                 / float(table["mirror + template, FPS to 2048"][-4]))
+        assert len(published) == 4 and abs(float(published[0]) - ratio) < 0.01   # 'all', as the rounded cells give
     oracle = [cells(line) for line in pandaset.splitlines() if line.startswith("| (oracle)")]
     assert len(oracle) == 1 and float(oracle[0][1]) < float(oracle[0][2])   # the noisy box misplaces it
     fidelity_rows = [line for line in pandaset.split("### Fidelity")[1].splitlines() if line.startswith("| ")]

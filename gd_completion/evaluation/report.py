@@ -124,6 +124,19 @@ def _metric_table(items: list[PandaSetItem], attr: str, scale: float = 1.0, poin
     return markdown_table(headers, rows)
 
 
+def _prior_ratios(items: list[PandaSetItem], attr: str) -> str:
+    """The published completion's and the network's (evenly spaced) mean over mirror + template's, overall and per
+    input-size bucket, from the unrounded means (the targets' ratios)."""
+    groups = _groups(items)
+
+    def ratios(name: str) -> str:
+        means = [(_nanmean([getattr(i, attr).get(name, math.nan) for i in v]),
+                  _nanmean([getattr(i, attr).get("mirror_template", math.nan) for i in v])) for v in groups.values()]
+        return " / ".join(f"{a / b:.3f}" if b > 0 else "-" for a, b in means)
+    return (f"Over mirror + template, from the unrounded means ({' / '.join(groups)}): published "
+            f"{ratios('ggd_merge')}; network alone (evenly spaced) {ratios('ggd')}.")
+
+
 def _band_zone_table(items: list[PandaSetItem]) -> str:
     """The band's coverage near the sides (tyres, wheel arches) and under the body, every observation."""
     share = _nanmean([i.band_side_share for i in items])
@@ -178,7 +191,7 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
                 "merge and given to the raw input and the priors, not fed to the network."
                 if result.pool_margin is not None else "")]
     parts.append(f"### Coverage error x1e3 (reference -> output), random reference ({result.random_points:,} points)"
-                 "\n\n" + _metric_table(items, "coverage", points=True))
+                 "\n\n" + _metric_table(items, "coverage", points=True) + "\n\n" + _prior_ratios(items, "coverage"))
     parts.append(f"### Coverage error x1e3, voxel-uniform reference ({result.voxel_points} points, one per "
                  f"0.01 voxel first)\n\n" + _metric_table(items, "coverage_voxel"))
     parts.append("### Fidelity x1e3 (all in-box points above the ground cut of the frame -> output)\n\n"
@@ -190,7 +203,7 @@ def pandaset_section(result: PandaSetResult, num_control: int | None = None, num
                  "arches and the road under them, which the crop's ground cut drops from the network's inputs) "
                  "included. The band's points inside the box's footprint are pooled by "
                  "the measured merge, and are part of the raw input and of the priors' inputs too.\n\n"
-                 + _metric_table(items, "coverage_band")
+                 + _metric_table(items, "coverage_band") + "\n\n" + _prior_ratios(items, "coverage_band")
                  + "\n\nThat reference's ground-band points alone (coverage error x1e3 of the band; observations "
                  "whose reference has band points):\n\n" + _metric_table(items, "band_coverage")
                  + "\n\n" + _band_zone_table(items))
