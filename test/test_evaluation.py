@@ -624,9 +624,16 @@ def test_evaluate_command_crop_margin(tmp_path, shared_data):
     args = parser.parse_args(["evaluate", "--output", str(tmp_path / "same"), "--crop-margin", "0.1", *common])
     assert args.func(args) == 0   # the contract's own margin: not called wider
     assert "cropped with a margin" not in (tmp_path / "same" / "report.md").read_text()
-    for bad, message in ((["--crop-margin", "0.05"], "narrower than the model's contract"),
-                         (["--crop-margin", "nan"], "a margin in metres"),
-                         (["--crop-margin", "0.3", "--no-pandaset"], "the PandaSet part is skipped")):
+    refused_before_output(parser, common, tmp_path, (
+        (["--crop-margin", "0.05"], "narrower than the model's contract"),
+        (["--crop-margin", "nan"], "a margin in metres"),
+        (["--crop-margin", "0.3", "--no-pandaset"], "the PandaSet part is skipped")))
+
+
+def refused_before_output(parser, common: list[str], tmp_path, cases) -> None:
+    """Each (extra arguments, message) of `cases` given to `evaluate` is a one-line EvaluationError matching the
+    message, raised before the output folder is made."""
+    for bad, message in cases:
         failed = tmp_path / f"failed_{bad[1]}"
         args = parser.parse_args(["evaluate", "--output", str(failed), *bad, *common])
         with pytest.raises(EvaluationError, match=message):
@@ -659,13 +666,9 @@ def test_evaluate_command_pool_margin(tmp_path, shared_data):
     beside = {m: float(row(t, two_sided, "raw input")[-1].rstrip(" %")) for m, t in texts.items()}
     assert beside["0"] == 0.0 < beside["0.4"]   # the raw input's points beside the crop: the pool margin's only
     assert row(texts["0.4"], two_sided, "box fill")[-1] == "0.00 %"
-    for bad, message in ((["--pool-margin", "-1"], "a margin in metres"), (["--pool-margin", "nan"], "a margin"),
-                         (["--pool-margin", "0.4", "--no-pandaset"], "the PandaSet part is skipped")):
-        failed = tmp_path / f"failed_{bad[1]}"
-        args = parser.parse_args(["evaluate", "--output", str(failed), *bad, *common])
-        with pytest.raises(EvaluationError, match=message):
-            args.func(args)
-        assert not failed.exists()
+    refused_before_output(parser, common, tmp_path, (
+        (["--pool-margin", "-1"], "a margin in metres"), (["--pool-margin", "nan"], "a margin"),
+        (["--pool-margin", "0.4", "--no-pandaset"], "the PandaSet part is skipped")))
 
 
 @pytest.mark.integration  # reads the shared drive at length

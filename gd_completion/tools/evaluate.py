@@ -3,14 +3,13 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import math
 import time
 from dataclasses import replace
 from pathlib import Path
 
 from gd_completion.atomic import make_folder
 from gd_completion.errors import EvaluationError
-from gd_completion.preprocess import POOL_MARGIN
+from gd_completion.preprocess import POOL_MARGIN, check_pool_margin
 
 # torch, the model and the evaluation modules are imported in run_evaluation: `--help` stays light.
 
@@ -53,9 +52,10 @@ def run_evaluation(args: argparse.Namespace) -> int:
     for name, value in (("--crop-margin", args.crop_margin), ("--pool-margin", args.pool_margin)):
         if value is not None and args.no_pandaset:
             raise EvaluationError(f"{name}: the PandaSet part is skipped (--no-pandaset)")
-    if args.pool_margin is not None and not (math.isfinite(args.pool_margin) and 0.0 <= args.pool_margin <= 5.0):
-        raise EvaluationError(f"--pool-margin {args.pool_margin}: a margin in metres, in [0, 5]")
-    pool_margin = POOL_MARGIN if args.pool_margin is None else args.pool_margin
+    try:   # the crop's own check
+        pool_margin = POOL_MARGIN if args.pool_margin is None else check_pool_margin(args.pool_margin)
+    except ValueError as error:
+        raise EvaluationError(f"--pool-margin {args.pool_margin}: a margin in metres ({error})") from None
     synthetic_seed = EVAL_SEED if args.synthetic_seed is None else args.synthetic_seed
     if args.threads:
         torch.set_num_threads(args.threads)
