@@ -299,3 +299,6 @@ def test_a_loose_box_keeps_the_end_it_cuts_off_within_the_pool_margin(completer:
     else:
         assert not len(on_the_end)
     assert not (cKDTree(points[past]).query(result.points[result.generated == 1])[0] < 1e-6).any()
+    for bad in (-0.1, math.nan):   # refused when the completer is built, not on every frame
+        with pytest.raises(ValueError, match="pool_margin"):
+            VehicleCompleter(completer.model, pool_margin=bad)
