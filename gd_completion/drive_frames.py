@@ -1,10 +1,15 @@
-"""Box-refiner samples from a labelled real drive (PandaSet layout): its moving vehicles cropped with detector-like
-box errors, each with the true box in the frame of the box it was cropped with.
+"""Training samples from a labelled real drive (PandaSet layout): its moving vehicles cropped with the annotated and
+with detector-like boxes.
 
-The synthetic pairs teach the box refiner (`model.box_refiner`) on simulated scans; a labelled drive of a real
-sensor shows it real vehicles (glass, mirrors, rounded bodies, the annotators' box conventions). Only vehicles never
-marked stationary are used, because the PandaSet evaluation (`evaluation.pandaset_eval`) scores the parked ones: a
-refiner adapted on a drive is still scored on vehicles it never saw (of the same drive and sensors).
+- `drive_frames`: box-refiner samples, each crop with the true box in the frame of the box it was cropped with.
+- `drive_pairs`: completion samples, each crop with the vehicle's multi-frame aggregate (every frame and sensor of
+  its track, each in its own annotated box frame) in the frame of the box it was cropped with: a partial reference,
+  what the sensors saw of that vehicle over the drive.
+
+The synthetic pairs teach on simulated scans; a labelled drive of a real sensor shows real vehicles (glass, mirrors,
+rounded bodies, the annotators' box conventions). Only vehicles never marked stationary are used, because the
+PandaSet evaluation (`evaluation.pandaset_eval`) scores the parked ones: a network adapted on a drive is still scored
+on vehicles it never saw (of the same drive and sensors).
 """
 from __future__ import annotations
 
@@ -18,29 +23,34 @@ import numpy as np
 
 from gd_completion.datasets.pandaset import PandaSetSequence
 from gd_completion.errors import DataFormatError
-from gd_completion.evaluation.box_noise import BoxNoise
+from gd_completion.evaluation.box_noise import BoxNoise, reframe
 from gd_completion.evaluation.pandaset_eval import (
     MIN_INPUT_POINTS,
     SENSORS,
     collect_tracks,
+    random_reference,
     stationary_vehicles,
     vehicle_tracks,
 )
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.preprocess import Preprocessing, network_input
 
+DRIVE_REFERENCE_POINTS = 4096   # points of a drive pair's reference (twice N_o, as the synthetic targets' gt_points)
+
 
 @dataclass(frozen=True)
 class DriveSettings:
-    """A labelled drive for refiner training (a refiner recipe's `drive`): the folder (PandaSet layout), noisy crops
-    per annotated crop, the scale of the evaluation's box-noise sigmas from the first draw to the last, the first
-    draw's seed (draw k: seed + k) and the share of its vehicles held out for validation."""
+    """A labelled drive for training (a recipe's `drive`, refiner or completion network): the folder (PandaSet
+    layout), noisy crops per annotated crop, the scale of the evaluation's box-noise sigmas from the first draw to the
+    last, the first draw's seed (draw k: seed + k), the share of its vehicles held out for validation and (completion
+    pairs) whether the reference keeps the ground band."""
 
     pandaset: str
     draws: int = 4
     sigma_scale: tuple[float, float] = (0.8, 1.4)
     seed: int = 7001
     val_share: float = 0.2
+    ground_band: bool = False   # `drive_pairs`: the reference keeps every point of the exact box, the ground band too
 
     def __post_init__(self) -> None:
         if not isinstance(self.pandaset, str) or not (Path(self.pandaset) / "lidar").is_dir():
@@ -58,6 +68,8 @@ class DriveSettings:
         if (isinstance(self.val_share, bool) or not isinstance(self.val_share, (int, float))
                 or not 0.0 < self.val_share < 1.0):
             raise ValueError(f"val_share={self.val_share!r} must be in (0, 1)")
+        if not isinstance(self.ground_band, bool):
+            raise ValueError(f"ground_band={self.ground_band!r} must be true or false")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> DriveSettings:
@@ -91,15 +103,42 @@ class DriveFrames:
     def split(self, val_share: float, seed: int = 0) -> tuple[DriveFrames, DriveFrames]:
         """(training, validation) with whole vehicles held out: `val_share` of the tracks (at least one) drawn with
         `seed` validate."""
-        if not 0.0 < val_share < 1.0:
-            raise ValueError(f"val_share={val_share} must be in (0, 1)")
-        tracks = np.unique(self.track)
-        if len(tracks) < 2:
-            raise DataFormatError(f"a drive's refiner samples hold {len(tracks)} vehicle(s): too few to split")
-        count = min(len(tracks) - 1, max(1, round(val_share * len(tracks))))
-        held = np.random.default_rng(seed).choice(tracks, size=count, replace=False)
-        validate = np.isin(self.track, held)
+        validate = held_out(self.track, val_share, seed)
         return self.subset(~validate), self.subset(validate)
+
+
+@dataclass(frozen=True)
+class DrivePairs:
+    """Completion samples: network inputs normalised by the box used, that box's size, and the vehicle's multi-frame
+    aggregate in the same frame."""
+
+    partial: np.ndarray     # (S, n_input, 3) float32
+    size: np.ndarray        # (S, 3) float32: length, width, height of the box used
+    reference: np.ndarray   # (S, R, 3) float32: the track's aggregate in the used box's frame
+    track: np.ndarray       # (S,) int64: the vehicle's track id
+
+    def __len__(self) -> int:
+        return len(self.track)
+
+    def subset(self, keep: np.ndarray) -> DrivePairs:
+        """The samples where the boolean mask `keep` is true."""
+        return DrivePairs(self.partial[keep], self.size[keep], self.reference[keep], self.track[keep])
+
+    def split(self, val_share: float, seed: int = 0) -> tuple[DrivePairs, DrivePairs]:
+        """(training, validation) with whole vehicles held out, as `DriveFrames.split`."""
+        validate = held_out(self.track, val_share, seed)
+        return self.subset(~validate), self.subset(validate)
+
+
+def held_out(track: np.ndarray, val_share: float, seed: int) -> np.ndarray:
+    """Mask of the samples of `val_share` of the tracks (at least one, never all) drawn with `seed`."""
+    if not 0.0 < val_share < 1.0:
+        raise ValueError(f"val_share={val_share} must be in (0, 1)")
+    tracks = np.unique(track)
+    if len(tracks) < 2:
+        raise DataFormatError(f"a drive's samples hold {len(tracks)} vehicle(s): too few to split")
+    count = min(len(tracks) - 1, max(1, round(val_share * len(tracks))))
+    return np.isin(track, np.random.default_rng(seed).choice(tracks, size=count, replace=False))
 
 
 def true_frame(true: Box3D, used: Box3D) -> np.ndarray:
@@ -126,19 +165,10 @@ def drive_frames(drive: DriveSettings, *, n_input: int = 512, preprocessing: Pre
     box (`evaluation.box_noise.noisy_box`, the sigmas of `noise` (default the evaluation's) scaled from
     `drive.sigma_scale[0]` to `[1]` over the draws, draw k seeded `drive.seed + k`), cropped through `preprocessing`
     (the contract of the checkpoint whose refiner trains) and brought to `n_input` points."""
-    base = noise or BoxNoise()
-    sequence = PandaSetSequence(drive.pandaset)
-    vehicles = moving_vehicles(sequence, sensors)
+    sequence, vehicles, prep = _moving(drive, preprocessing)
     frames = None if frames is None else list(frames)
-    if not vehicles:
-        raise DataFormatError(f"{drive.pandaset}: no moving vehicle tracks")
-    prep = replace(preprocessing or Preprocessing(), min_points=1)
     parts: list[tuple[np.ndarray, tuple[float, ...], np.ndarray, int]] = []
-    factors = list(np.linspace(*drive.sigma_scale, drive.draws))   # one draw: the low factor; none: []
-    for k, factor in enumerate(factors or [None]):   # no draw: one pass for the annotated boxes
-        shaken = None if factor is None else replace(
-            base, centre_xy=base.centre_xy * factor, centre_z=base.centre_z * factor, size=base.size * factor,
-            yaw_deg=base.yaw_deg * factor, seed=drive.seed + k)
+    for k, shaken in enumerate(_draws(drive, noise)):
         for track in collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=shaken).values():
             if k == 0:
                 parts += [(network_input(points, n_input), box.size, np.zeros(7, np.float32), track.instance_id)
@@ -152,3 +182,69 @@ def drive_frames(drive: DriveSettings, *, n_input: int = 512, preprocessing: Pre
     partial, size, target, track_id = zip(*parts)
     return DriveFrames(np.stack(partial).astype(np.float32), np.array(size, np.float32), np.stack(target),
                        np.array(track_id, np.int64))
+
+
+def drive_pairs(drive: DriveSettings, *, n_input: int = 512, reference_points: int = DRIVE_REFERENCE_POINTS,
+                preprocessing: Preprocessing | None = None, sensors: Sequence[int] = SENSORS,
+                noise: BoxNoise | None = None, frames: Iterable[int] | None = None) -> DrivePairs:
+    """Completion samples of the `drive`'s moving vehicles seen in at least two frames (of `frames`, default every
+    frame; every sensor): each crop as `drive_frames` makes them (annotated box, then `drive.draws` noisy boxes),
+    with `reference_points` points drawn at random (seeded by the track; repeated when the aggregate has fewer) from
+    the track's aggregate: the contract's crops of every entry (`VehicleTrack.aggregate`) or, with
+    `drive.ground_band`, every point inside the exact boxes (`aggregate_in_box`), taken from the annotated box's frame
+    into the frame of the box used (`box_noise.reframe`)."""
+    if isinstance(reference_points, bool) or not isinstance(reference_points, int) or reference_points < 1:
+        raise ValueError(f"reference_points={reference_points!r} must be an integer >= 1")
+    sequence, vehicles, prep = _moving(drive, preprocessing)
+    frames = None if frames is None else list(frames)
+    parts: list[tuple[np.ndarray, tuple[float, ...], np.ndarray, int]] = []
+    for k, shaken in enumerate(_draws(drive, noise)):
+        tracks = collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=shaken, pool_margin=0.0)
+        for track in tracks.values():
+            if len(set(track.frames)) < 2:
+                continue
+            reference = track_reference(track.aggregate_in_box() if drive.ground_band else track.aggregate(),
+                                        reference_points, track.instance_id)
+            if k == 0:
+                parts += [(network_input(points, n_input), box.size, reference, track.instance_id)
+                          for points, box in zip(track.points, track.boxes) if len(points) >= MIN_INPUT_POINTS]
+            parts += [(network_input(crop.normalized, n_input), crop.box.size, reframe(reference, box, crop.box),
+                       track.instance_id)
+                      for crop, box in zip(track.noisy, track.boxes)
+                      if crop is not None and len(crop.normalized) >= MIN_INPUT_POINTS]
+    if not parts:
+        raise DataFormatError(f"{drive.pandaset}: no moving vehicle seen in two frames with {MIN_INPUT_POINTS} points "
+                              "in its box")
+    partial, size, reference, track_id = zip(*parts)
+    return DrivePairs(np.stack(partial).astype(np.float32), np.array(size, np.float32),
+                      np.stack(reference).astype(np.float32), np.array(track_id, np.int64))
+
+
+def track_reference(aggregate: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """`count` points of a track's `aggregate` drawn at random with `seed`: each once while it has enough, then
+    random repeats."""
+    reference = random_reference(aggregate, count, seed=seed)
+    if len(reference) < count:
+        extra = np.random.default_rng(seed).choice(len(reference), count - len(reference))
+        reference = np.concatenate([reference, reference[extra]])
+    return reference
+
+
+def _moving(drive: DriveSettings, preprocessing: Preprocessing | None
+            ) -> tuple[PandaSetSequence, dict[str, str], Preprocessing]:
+    """The drive, its moving vehicles (DataFormatError without any) and the contract with every crop kept."""
+    sequence = PandaSetSequence(drive.pandaset)
+    vehicles = moving_vehicles(sequence)
+    if not vehicles:
+        raise DataFormatError(f"{drive.pandaset}: no moving vehicle tracks")
+    return sequence, vehicles, replace(preprocessing or Preprocessing(), min_points=1)
+
+
+def _draws(drive: DriveSettings, noise: BoxNoise | None) -> list[BoxNoise | None]:
+    """The box noise of each pass: None (the annotated boxes only) without draws, else `drive.draws` noises, the
+    sigmas of `noise` (default the evaluation's) scaled from `drive.sigma_scale[0]` to `[1]`, draw k seeded
+    `drive.seed + k` (the first pass also takes the annotated boxes)."""
+    base = noise or BoxNoise()
+    factors = np.linspace(*drive.sigma_scale, drive.draws)
+    return [replace(base, centre_xy=base.centre_xy * f, centre_z=base.centre_z * f, size=base.size * f,
+                    yaw_deg=base.yaw_deg * f, seed=drive.seed + k) for k, f in enumerate(factors)] or [None]

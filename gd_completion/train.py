@@ -15,7 +15,7 @@ import torch
 from .errors import CheckpointError, DataFormatError, TrainingError
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.config import GGDConfig
-from .model.losses import CD_SCALE, SURFACE_SCALE, chamfer_and_surface, chamfer_l2, ggd_loss
+from .model.losses import CD_SCALE, SURFACE_SCALE, chamfer_and_surface, chamfer_l2, coverage, drive_loss, ggd_loss
 from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
 
@@ -38,6 +38,7 @@ class TrainSettings:
     gamma: float = 0.0              # weight of the surface term (0: the paper's loss); see losses.ggd_loss
     rho: float = 0.0                # weight of the repulsion term (0: the paper's loss); see losses.ggd_loss
     tangential: bool = False        # the repulsion term within each point's plane; see losses.repulsion
+    drive_weight: float = 1.0       # weight of the real drive's batches (`train(drive=)`; losses.drive_loss)
     batch_size: int = 32
     lr: float = 1e-3                # paper: 0.01; see docs/MODEL.md
     lr_final: float | None = None   # cosine decay per epoch from lr to lr_final (None: constant lr)
@@ -49,7 +50,7 @@ class TrainSettings:
     time_budget_s: float | None = None
 
     def __post_init__(self) -> None:
-        bad = [name for name in ("gamma", "rho") if not getattr(self, name) >= 0]   # NaN too
+        bad = [name for name in ("gamma", "rho", "drive_weight") if not getattr(self, name) >= 0]   # NaN too
         if bad:
             raise TrainingError(f"the weight of {' and '.join(bad)} must be >= 0 (0 leaves its term out); got "
                                 + ", ".join(f"{name} {getattr(self, name)}" for name in bad))
@@ -87,8 +88,11 @@ def _as_tensor(a: Any, name: str) -> torch.Tensor:
     return t.contiguous()
 
 
-def _pairs(data: ArrayPair, name: str, cfg: GGDConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """(partial, complete, box shapes (S, 2) or None) checked against `cfg`."""
+def _pairs(data: ArrayPair, name: str, cfg: GGDConfig, targets: int | None = None
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """(partial, complete, box shapes (S, 2) or None) checked against `cfg`; the targets need `targets` points or
+    more (default N_o)."""
+    targets = cfg.num_output if targets is None else targets
     if len(data) not in (2, 3):
         raise DataFormatError(f"{name}: expected (partial, complete) or (partial, complete, box sizes)")
     partial, complete = _as_tensor(data[0], f"{name} partial"), _as_tensor(data[1], f"{name} complete")
@@ -104,9 +108,9 @@ def _pairs(data: ArrayPair, name: str, cfg: GGDConfig) -> tuple[torch.Tensor, to
         raise DataFormatError(f"{name}: a box-conditioned model needs the box sizes (partial, complete, sizes)")
     if partial.shape[0] != complete.shape[0] or partial.shape[0] == 0:
         raise DataFormatError(f"{name}: {partial.shape[0]} partial vs {complete.shape[0]} complete samples")
-    if partial.shape[1] != cfg.num_input or complete.shape[1] < cfg.num_output:
+    if partial.shape[1] != cfg.num_input or complete.shape[1] < targets:
         raise DataFormatError(f"{name}: expected partial (S, {cfg.num_input}, 3) and complete (S, >= "
-                              f"{cfg.num_output}, 3), got {tuple(partial.shape)} and {tuple(complete.shape)}")
+                              f"{targets}, 3), got {tuple(partial.shape)} and {tuple(complete.shape)}")
     return partial, complete, shapes
 
 
@@ -132,6 +136,20 @@ def evaluate(model: GGDNet, partial: torch.Tensor, complete: torch.Tensor, batch
         sums["surface"] += to_surface.sum().item()
     model.train(was_training)
     return {k: (SURFACE_SCALE if k == "surface" else CD_SCALE) * v / partial.shape[0] for k, v in sums.items()}
+
+
+@torch.inference_mode()
+def evaluate_drive(model: GGDNet, partial: torch.Tensor, reference: torch.Tensor, batch_size: int,
+                   device: str | torch.device, shapes: torch.Tensor | None = None) -> float:
+    """Mean coverage (x1000) of the drive pairs' references by P_o (`losses.coverage`)."""
+    was_training = model.training
+    model.eval()
+    total = 0.0
+    for s in range(0, partial.shape[0], batch_size):
+        out = model(partial[s:s + batch_size].to(device), _rows(shapes, slice(s, s + batch_size), device))
+        total += coverage(reference[s:s + batch_size].to(device), out.completion).sum().item()
+    model.train(was_training)
+    return CD_SCALE * total / partial.shape[0]
 
 
 def _backward(model: torch.nn.Module, total: torch.Tensor, max_grad_norm: float) -> bool:
@@ -192,8 +210,10 @@ def warm_start(model: GGDNet, path: str | Path, skip: Sequence[str] = ()) -> lis
 
 def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir: str | Path,
           settings: TrainSettings | None = None, *, resume: bool = False, init_from: str | Path | None = None,
-          init_skip: Sequence[str] = (), preprocessing: Preprocessing | None = None, **overrides: Any) -> TrainResult:
-    """Train GGDNet; writes `out_dir/last.pt` (resumable) every epoch and `out_dir/best.pt` (best val P_o CD).
+          init_skip: Sequence[str] = (), preprocessing: Preprocessing | None = None,
+          drive: tuple[ArrayPair, ArrayPair] | None = None, **overrides: Any) -> TrainResult:
+    """Train GGDNet; writes `out_dir/last.pt` (resumable) every epoch and `out_dir/best.pt` (best validation
+    objective: P_o's CD, plus `drive_weight` times the drive pairs' coverage with a drive).
 
     `overrides` set TrainSettings fields (epochs=, batch_size=, lr=, generation_epochs=, lam=, device=,
     seed=, time_budget_s=...). With `resume=True` and an existing last.pt, training continues from it
@@ -201,6 +221,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     Otherwise `init_from` warm-starts the new model from a checkpoint (`warm_start`; e.g. the shipped
     weights for a control-point ablation whose tree decoder differs), skipping the `init_skip` prefixes.
     `preprocessing`: the contract the data was made with (`synth.dataset` metadata), stored in every checkpoint.
+    `drive`: (training, validation) pairs of a real drive, (partial, reference, box sizes) each
+    (`drive_frames.drive_pairs`): every step adds a batch of them, weighted `drive_weight` (`losses.drive_loss`).
     """
     settings = settings or TrainSettings()
     for k, v in overrides.items():
@@ -235,6 +257,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                  len(model.state_dict()) - len(fresh), ", ".join(fresh) or "none")
     tr_x, tr_y, tr_s = _pairs(train_data, "training data", config)
     va_x, va_y, va_s = _pairs(val_data, "validation data", config)
+    drive_train, drive_val = (None, None) if drive is None else (
+        _pairs(drive[0], "drive training data", config, 1), _pairs(drive[1], "drive validation data", config, 1))
     frozen = frozen_modules(model, settings.freeze)
     if resumed_freeze is not None and resumed_freeze != tuple(settings.freeze):
         raise CheckpointError(f"checkpoint {last_path}: trained with freeze {list(resumed_freeze)}, resumed with "
@@ -258,6 +282,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         train_mode(model, frozen)
         g = torch.Generator().manual_seed(settings.seed * 100003 + epoch)   # resumable shuffling
         perm = torch.randperm(tr_x.shape[0], generator=g)
+        drive_order = None if drive_train is None else torch.randperm(drive_train[0].shape[0], generator=g)
         sums: dict[str, float] = {}
         seen = skipped = 0
         t0 = time.monotonic()
@@ -270,6 +295,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             losses = ggd_loss(model(x, _rows(tr_s, idx, device)), gt, lam=lam, alpha=settings.alpha,
                               beta=settings.beta, gamma=settings.gamma, rho=settings.rho,
                               tangential=settings.tangential)
+            if drive_train is not None and drive_order is not None:
+                losses = _with_drive(losses, model, drive_train, drive_order, s, idx.numel(), lam, settings, device)
             optimizer.zero_grad(set_to_none=True)
             if not _backward(model, losses["total"], settings.max_grad_norm):
                 skipped = _skip_step(epoch, s // settings.batch_size + 1, skipped, settings.max_skipped_steps)
@@ -294,14 +321,19 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                   **{f"train_{k}": v / seen for k, v in sums.items()},
                   **{f"val_{k}": v for k, v in evaluate(model, va_x, va_y, settings.batch_size, device,
                                                                      va_s).items()}}
+        record["val_objective"] = record["val_cd_completion"]
+        if drive_val is not None:
+            record["val_drive_coverage"] = evaluate_drive(model, *drive_val[:2], settings.batch_size, device,
+                                                          drive_val[2])
+            record["val_objective"] += settings.drive_weight * record["val_drive_coverage"]
         history.append(record)
         log.info("epoch %d/%d lam %.1f loss %.4f | val CD x1e3 completion %.4f generated %.4f | %.1fs%s",
                  epoch + 1, settings.epochs, lam, record["train_total"], record["val_cd_completion"],
                  record["val_cd_generated"], record["seconds"], " (partial epoch, time budget)" if stopped else "")
         done = epoch if stopped else epoch + 1     # a partial epoch is redone on resume
         extra = {"epoch": done, "history": history, "settings": asdict(settings), "best_cd": best}
-        if not stopped and record["val_cd_completion"] < best:
-            best = record["val_cd_completion"]
+        if not stopped and record["val_objective"] < best:
+            best = record["val_objective"]
             extra["best_cd"] = best
             save_checkpoint(best_path, model, preprocessing, **extra)
         save_checkpoint(last_path, model, preprocessing, optimizer=optimizer.state_dict(), **extra)
@@ -310,3 +342,16 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             break
     return TrainResult(out_dir=out_dir, last_path=last_path, best_path=best_path if best_path.is_file() else None,
                        epochs_done=done, stopped_early=stopped, history=history)
+
+
+def _with_drive(losses: dict[str, torch.Tensor], model: GGDNet,
+                drive: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None], order: torch.Tensor, start: int,
+                count: int, lam: float, settings: TrainSettings, device: torch.device) -> dict[str, torch.Tensor]:
+    """`losses` of a synthetic batch with a batch of drive pairs added: the `count` pairs of `order` from `start`
+    on (cycling; the drive is smaller than the synthetic set), weighted `settings.drive_weight`."""
+    idx = order[torch.arange(start, start + count) % order.numel()]
+    partial, reference, shapes = drive
+    terms = drive_loss(model(partial[idx].to(device), _rows(shapes, idx, device)), reference[idx].to(device),
+                       lam=lam, alpha=settings.alpha, beta=settings.beta)
+    return {**losses, "total": losses["total"] + settings.drive_weight * terms["total"],
+            **{f"drive_{k}": v for k, v in terms.items()}}

@@ -1,6 +1,6 @@
-"""Box-refiner samples from a labelled real drive: the true frame against the synthetic pairs' convention,
-PandaSet-002's moving vehicles only (the evaluation's parked ones never), whole vehicles held out, recipes checked
-before any data."""
+"""Samples from a labelled real drive: the refiner's true frame against the synthetic pairs' convention, the
+completion pairs' references in the frame of the box used, PandaSet-002's moving vehicles only (the evaluation's
+parked ones never), whole vehicles held out, recipes checked before any data."""
 from __future__ import annotations
 
 import json
@@ -10,8 +10,19 @@ import numpy as np
 import pytest
 import torch
 
-from gd_completion.drive_frames import DriveFrames, DriveSettings, drive_frames, moving_vehicles, true_frame
+from gd_completion.drive_frames import (
+    DRIVE_REFERENCE_POINTS,
+    DriveFrames,
+    DrivePairs,
+    DriveSettings,
+    drive_frames,
+    drive_pairs,
+    moving_vehicles,
+    track_reference,
+    true_frame,
+)
 from gd_completion.errors import DataFormatError
+from gd_completion.evaluation.nearest import nearest_sq
 from gd_completion.evaluation.pandaset_eval import PandaSetSequence, stationary_vehicles
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.model.box_refiner import BoxFrame, frame_targets, to_frame
@@ -100,3 +111,56 @@ def test_a_refiner_recipe_drive_is_checked_before_any_data(tmp_path, shared_data
     good = {"base": "x.pt", "data": ["y.json"], "drive": {"pandaset": str(shared_data / "pandaset-002"), "draws": 2}}
     recipe.write_text(json.dumps(good))
     assert read_recipe(recipe)["drive"] == DriveSettings(str(shared_data / "pandaset-002"), draws=2)
+
+
+@pytest.fixture(scope="module")
+def pairs(shared_data) -> DrivePairs:
+    return drive_pairs(DriveSettings(str(shared_data / "pandaset-002"), draws=1, sigma_scale=(1.0, 1.0), seed=11),
+                       frames=FRAMES)
+
+
+def test_drive_pairs_give_each_crop_its_vehicles_aggregate_in_the_frame_of_the_box_used(shared_data, pairs):
+    """Completion pairs: moving vehicles seen in two frames or more, every exact crop with its track's one reference,
+    every noisy crop with that reference taken into the noisy box's frame (its points sit on it there, not in the
+    annotated box's frame)."""
+    sequence = PandaSetSequence(shared_data / "pandaset-002")
+    parked = {sequence.track_ids[u] for u in stationary_vehicles(sequence, (0, 1))}
+    assert not set(pairs.track.tolist()) & parked and len(np.unique(pairs.track)) >= 5
+    assert pairs.partial.shape[1:] == (512, 3) and pairs.reference.shape[1:] == (DRIVE_REFERENCE_POINTS, 3)
+    own_exact, own_noisy, annotated_frame = [], [], []
+    for track in np.unique(pairs.track):
+        rows = np.flatnonzero(pairs.track == track)
+        first = pairs.reference[rows[0]]   # the first pass starts with the annotated boxes
+        for row in rows:
+            fidelity = nearest_sq(pairs.partial[row], pairs.reference[row]).mean()
+            if np.array_equal(pairs.reference[row], first):
+                own_exact.append(fidelity)
+            else:
+                own_noisy.append(fidelity)
+                annotated_frame.append(nearest_sq(pairs.partial[row], first).mean())
+    assert 0.9 * len(own_exact) <= len(own_noisy) <= len(own_exact)   # one draw per exact crop, a few too sparse
+    assert np.mean(own_exact) < 1.5e-4 and np.mean(own_noisy) < 0.5 * np.mean(annotated_frame)
+    train, val = pairs.split(0.2, seed=0)
+    assert len(train) + len(val) == len(pairs) and not set(train.track.tolist()) & set(val.track.tolist())
+
+
+def test_drive_pairs_keep_the_ground_band_only_when_asked(shared_data):
+    folder = str(shared_data / "pandaset-002")
+    plain = drive_pairs(DriveSettings(folder, draws=0), frames=FRAMES, reference_points=512)
+    band = drive_pairs(DriveSettings(folder, draws=0, ground_band=True), frames=FRAMES, reference_points=512)
+    assert np.array_equal(plain.partial, band.partial) and plain.reference.shape == (len(plain), 512, 3)
+    low = (-0.5 * plain.size[:, 2] + 0.1) / plain.size[:, 0]   # the ground cut, normalised
+    assert not (plain.reference[..., 2] < low[:, None] - 1e-6).any()
+    assert (band.reference[..., 2] < low[:, None]).mean() > 0.02
+    with pytest.raises(ValueError, match="reference_points"):
+        drive_pairs(DriveSettings(folder, draws=0), frames=FRAMES, reference_points=0)
+    with pytest.raises(ValueError, match="ground_band"):
+        DriveSettings(folder, ground_band="yes")
+
+
+def test_a_track_reference_draws_each_point_once_before_repeating():
+    aggregate = np.arange(30, dtype=np.float32).reshape(10, 3)
+    many = track_reference(aggregate, 25, seed=1)
+    assert many.shape == (25, 3) and {tuple(p) for p in many} == {tuple(p) for p in aggregate}
+    few = track_reference(aggregate, 4, seed=1)
+    assert len({tuple(p) for p in few}) == 4

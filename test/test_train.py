@@ -300,11 +300,13 @@ def test_every_recipe_in_the_repository_is_valid(path):
     """The recipes kept per training run parse with their sampling options and model configuration, as `train`
     reads them (no data generated), and warm-start from a run of the repository's recipes."""
     from gd_completion.cli import build_parser
-    from gd_completion.tools.train import apply_recipe, load_config, sampling_options
+    from gd_completion.tools.train import apply_recipe, drive_settings, load_config, sampling_options
 
     args = build_parser("train").parse_args(["train", "--output", "unused"])
     apply_recipe(args, path)
     sampling_options(args.sampling)
+    if args.drive is not None:
+        drive_settings(args.drive)
     config = load_config(args)
     assert config.num_output == 2048 and args.samples > 0 and args.epochs > 0
     if args.init_from is not None:   # a run of another recipe, or weights kept in the repository
@@ -454,3 +456,72 @@ def test_a_negative_loss_weight_is_refused_before_any_training(weights, tmp_path
     option, value = next(iter(weights.items()))
     assert main(["train", "--output", str(tmp_path / "run"), f"--{option}", str(value), "--samples", "4"]) == 2
     assert "must be >= 0" in capsys.readouterr().err and not (tmp_path / "run").exists()
+
+
+def test_drive_loss_counts_only_the_references_coverage():
+    """A real drive's aggregate is partial: output points where it has none cost nothing, its points left uncovered
+    do."""
+    from gd_completion.model.losses import chamfer_l2_directional, coverage, drive_loss
+
+    torch.manual_seed(0)
+    model = GGDNet(TINY).eval()
+    partial = torch.from_numpy(_data(2, 0)[0])
+    with torch.inference_mode():
+        out = model(partial)
+    reference = out.completion[:, :40]                       # the output holds it, and far more besides
+    assert coverage(reference, out.completion).abs().max() < 1e-12
+    assert (chamfer_l2_directional(out.completion, reference)[0] > 1e-4).all()   # the Chamfer term would pay
+    moved = reference + torch.tensor([0.0, 0.0, 0.1])
+    assert torch.allclose(coverage(moved, out.completion), chamfer_l2_directional(moved, out.completion)[0])
+    terms = drive_loss(out, moved, lam=3.0)
+    assert terms["coverage_fine"] > 0 and terms["total"] == pytest.approx(
+        (terms["coverage_coarse"] + 3 * terms["coverage_fine"] + 1000 * terms["control"] + 0.5 * terms["shape"]).item())
+
+
+def test_training_with_a_drive_adds_its_batches_and_validates_on_it(tmp_path):
+    """Drive pairs (partial, reference) join every step with their weight; the history gets their coverage, and the
+    best checkpoint is chosen on the validation objective (P_o's CD + drive_weight x the drive's coverage)."""
+    partial, complete = _data(8, 0)
+    drive = ((partial[:6], complete[:6, : TINY.num_output // 2]), (partial[6:], complete[6:, : TINY.num_output // 2]))
+    res = train(TINY, _data(8, 0), _data(4, 1), tmp_path / "d", _settings(epochs=4, generation_epochs=1,
+                                                                      drive_weight=2.0), drive=drive)
+    hist = res.history
+    assert all("train_drive_coverage_fine" in h and "val_drive_coverage" in h for h in hist)
+    assert [h["val_objective"] for h in hist] == pytest.approx(
+        [h["val_cd_completion"] + 2.0 * h["val_drive_coverage"] for h in hist])
+    assert read_checkpoint_metadata(tmp_path / "d" / "best.pt")["best_cd"] == pytest.approx(
+        min(h["val_objective"] for h in hist))
+    assert hist[-1]["val_drive_coverage"] < hist[0]["val_drive_coverage"]
+    plain = train(TINY, _data(8, 0), _data(4, 1), tmp_path / "p", _settings(epochs=1, generation_epochs=1))
+    assert "val_drive_coverage" not in plain.history[0]
+    assert plain.history[0]["train_total"] != pytest.approx(hist[0]["train_total"])
+    with pytest.raises(DataFormatError, match="drive training data"):
+        train(TINY, _data(8, 0), _data(4, 1), tmp_path / "x", _settings(epochs=1),
+              drive=((partial[:6, :5], complete[:6]), drive[1]))
+    with pytest.raises(TrainingError, match="drive_weight"):
+        TrainSettings(drive_weight=-1.0)
+
+
+@pytest.mark.integration
+def test_train_command_takes_a_real_drive_from_its_recipe(tmp_path, shared_data, capsys):
+    """A recipe's `drive` (drive_frames.DriveSettings' fields) adds the drive's completion pairs, held-out vehicles
+    validating; a bad one is refused before any folder is made."""
+    from gd_completion.cli import main
+
+    folder = str(shared_data / "pandaset-002")
+    recipe = {"name": "tiny_drive", "config": {**TINY.to_dict(), "box_conditioning": True}, "sampling": "v2",
+              "samples": 4, "val_samples": 2, "epochs": 1, "generation_epochs": 0, "batch_size": 2,
+              "drive": {"pandaset": folder, "draws": 0, "val_share": 0.2}, "drive_weight": 3.0}
+    path = tmp_path / "recipe.json"
+    path.write_text(json.dumps(recipe))
+    out = tmp_path / "run"
+    assert main(["train", "--recipe", str(path), "--output", str(out), "--workers", "1"]) == 0
+    settings = json.loads((out / "settings.json").read_text())
+    assert settings["drive"]["pandaset"] == folder and settings["settings"]["drive_weight"] == 3.0
+    record = read_checkpoint_metadata(out / "last.pt")["history"][0]
+    assert record["val_drive_coverage"] > 0 and record["train_drive_total"] > 0
+    for bad, message in (({"draws": 0}, "needs pandaset"), ({"pandaset": folder, "sigma": 1}, "unknown drive keys"),
+                         ({"pandaset": str(tmp_path)}, "lidar/")):
+        path.write_text(json.dumps({**recipe, "drive": bad}))
+        assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "bad")]) == 2
+        assert message in capsys.readouterr().err and not (tmp_path / "bad").exists()

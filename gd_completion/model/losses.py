@@ -132,3 +132,24 @@ def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float 
         terms["repulsion"] = repulsion(output.completion, output.neighbours, tangential=tangential).mean() * CD_SCALE
         total = total + rho * terms["repulsion"]
     return {"total": total, **terms}
+
+
+def coverage(reference: Tensor, points: Tensor) -> Tensor:
+    """(B,): mean over `reference` (B, R, 3) of the squared distance to the nearest of `points` (B, N, 3); the
+    Chamfer distance's reference -> points half."""
+    return _squared_to(reference, points, nearest_index(reference, points)).mean(1)
+
+
+def drive_loss(output, reference: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5) -> dict[str, Tensor]:
+    """`ggd_loss` for a partial reference (a real drive's multi-frame aggregate, `drive_frames.drive_pairs`): what
+    is missing from it may still be vehicle, so only its coverage counts, L = 1000 (coverage(P_s) + lam
+    coverage(P_o)) + alpha smoothL1(P_c', P_c) + beta 1000 L_shape (a deviation from the paper).
+
+    Returns the terms (batch means, unweighted except for their unit factors) and `total`."""
+    coverage_coarse = coverage(reference, output.coarse).mean() * CD_SCALE
+    coverage_fine = coverage(reference, output.completion).mean() * CD_SCALE
+    control = smooth_l1(output.control_deformed, output.control)
+    shape = laplacian_loss(output.completion, output.generated, output.neighbours) * CD_SCALE
+    total = coverage_coarse + lam * coverage_fine + alpha * control + beta * shape
+    return {"total": total, "coverage_coarse": coverage_coarse, "coverage_fine": coverage_fine, "control": control,
+            "shape": shape}

@@ -18,9 +18,13 @@ from gd_completion.synth.dataset import (
 )
 
 if TYPE_CHECKING:
+    from gd_completion.drive_frames import DriveSettings
     from gd_completion.model.config import GGDConfig
+    from gd_completion.preprocess import Preprocessing
 
 # torch, the model and the training loop are imported in the functions that use them: `--help` stays light.
+
+log = logging.getLogger(__name__)
 
 # Seeds of the validation set are offset so that they never meet the training seeds.
 VALIDATION_SEED_OFFSET = 1_000_003
@@ -54,6 +58,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--tangential", action="store_true",
                         help="measure the repulsion term's distances within each point's plane (spread along the "
                         "surface, not off it)")
+    parser.add_argument("--drive", default=None, metavar="FOLDER",
+                        help="a labelled real drive (PandaSet layout) whose moving vehicles are added to every step: "
+                        "each crop with the vehicle's multi-frame aggregate as a partial reference (only its coverage "
+                        "counts); in a recipe an object of drive_frames.DriveSettings' fields")
+    parser.add_argument("--drive-weight", type=float, default=1.0,
+                        help="weight of the drive's batches in the loss (default 1)")
     parser.add_argument("--gt-points", type=int, default=None,
                         help="points sampled on each ground-truth surface (default: the model's N_o); denser targets "
                         "make the nearest ground-truth point a closer stand-in for the surface")
@@ -86,8 +96,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 #: Options a recipe may set (argparse destinations), and their command-line defaults.
 RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "epochs", "generation_epochs", "lam", "alpha", "beta",
-               "gamma", "rho", "tangential", "gt_points", "batch_size", "lr", "lr_final", "num_control", "config",
-               "init_from", "init_skip", "sampling", "freeze")
+               "gamma", "rho", "tangential", "drive", "drive_weight", "gt_points", "batch_size", "lr", "lr_final",
+               "num_control", "config", "init_from", "init_skip", "sampling", "freeze")
 RECIPE_DEFAULTS: dict[str, Any] = {}
 _PATH_KEYS = ("meshes", "init_from")
 SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
@@ -130,6 +140,26 @@ def sampling_options(value: str | dict[str, Any]) -> SampleOptions:
     if value not in SAMPLING_PRESETS:
         raise DataFormatError(f"unknown sampling preset {value!r}; expected one of {sorted(SAMPLING_PRESETS)}")
     return SAMPLING_PRESETS[value]
+
+
+def drive_settings(value: str | dict[str, Any]) -> DriveSettings:
+    """A drive folder or a dict of `drive_frames.DriveSettings` fields; DataFormatError for anything else."""
+    from gd_completion.drive_frames import DriveSettings
+
+    try:
+        return DriveSettings.from_dict({"pandaset": value} if isinstance(value, str) else value)
+    except (TypeError, ValueError) as exc:
+        raise DataFormatError(f"drive: {exc}") from exc
+
+
+def drive_data(drive: DriveSettings, n_input: int, preprocessing: Preprocessing) -> tuple[tuple, tuple]:
+    """(training, validation) (partial, reference, box sizes) of a real drive's completion pairs."""
+    from gd_completion.drive_frames import drive_pairs
+
+    train, val = drive_pairs(drive, n_input=n_input, preprocessing=preprocessing).split(drive.val_share)
+    log.info("drive %s: %d training pairs, %d validation pairs (%d and %d vehicles)", drive.pandaset, len(train),
+             len(val), len(set(train.track.tolist())), len(set(val.track.tolist())))
+    return (train.partial, train.reference, train.size), (val.partial, val.reference, val.size)
 
 
 def load_config(args: argparse.Namespace) -> GGDConfig:
@@ -194,11 +224,12 @@ def run(args: argparse.Namespace) -> int:
     if args.recipe is not None:
         apply_recipe(args, args.recipe)
     options = sampling_options(args.sampling)   # a bad preset, configuration or setting fails before any folder
+    drive = None if args.drive is None else drive_settings(args.drive)
     config = load_config(args)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
                              alpha=args.alpha, beta=args.beta, gamma=args.gamma, rho=args.rho,
-                             tangential=args.tangential,
+                             tangential=args.tangential, drive_weight=args.drive_weight,
                              batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
                              device=device, freeze=tuple(args.freeze),
                              time_budget_s=args.time_budget)
@@ -213,11 +244,13 @@ def run(args: argparse.Namespace) -> int:
              "val_samples": args.val_samples, "meshes": str(args.meshes) if args.meshes else None,
              "recipe": str(args.recipe) if args.recipe else None,
              "data": train_data["metadata"]["cache_key"],
-             "init_from": str(args.init_from) if args.init_from else None, "init_skip": args.init_skip}, indent=2))
+             "init_from": str(args.init_from) if args.init_from else None, "init_skip": args.init_skip,
+             "drive": dataclasses.asdict(drive) if drive else None}, indent=2))
     sized = config.box_conditioning   # a box-conditioned model is given the size of the box it sees
     result = train(config, (train_data["partial"], train_data["complete"]) + ((train_data["size"],) if sized else ()),
                    (val_data["partial"], val_data["complete"]) + ((val_data["size"],) if sized else ()),
                    args.output, settings, resume=args.resume,
-                   init_from=args.init_from, init_skip=tuple(args.init_skip), preprocessing=spec.preprocessing)
+                   init_from=args.init_from, init_skip=tuple(args.init_skip), preprocessing=spec.preprocessing,
+                   drive=None if drive is None else drive_data(drive, config.num_input, spec.preprocessing))
     print(f"train: {result.epochs_done} epochs, best checkpoint {result.best_path}, last {result.last_path}")
     return 0
