@@ -27,7 +27,10 @@ from gd_completion.evaluation.box_noise import BoxNoise, reframe
 from gd_completion.evaluation.pandaset_eval import (
     MIN_INPUT_POINTS,
     SENSORS,
+    VehicleTrack,
     collect_tracks,
+    in_ground_band,
+    near_a_side,
     random_reference,
     stationary_vehicles,
     vehicle_tracks,
@@ -50,7 +53,7 @@ class DriveSettings:
     sigma_scale: tuple[float, float] = (0.8, 1.4)
     seed: int = 7001
     val_share: float = 0.2
-    ground_band: bool = False   # `drive_pairs`: the reference keeps every point of the exact box, the ground band too
+    ground_band: bool = False   # `drive_pairs`: the reference keeps the ground band's tyres and sills (`band_sides`)
 
     def __post_init__(self) -> None:
         if not isinstance(self.pandaset, str) or not (Path(self.pandaset) / "lidar").is_dir():
@@ -191,8 +194,8 @@ def drive_pairs(drive: DriveSettings, *, n_input: int = 512, reference_points: i
     frame; every sensor): each crop as `drive_frames` makes them (annotated box, then `drive.draws` noisy boxes),
     with `reference_points` points drawn at random (seeded by the track; repeated when the aggregate has fewer) from
     the track's aggregate: the contract's crops of every entry (`VehicleTrack.aggregate`) or, with
-    `drive.ground_band`, every point inside the exact boxes (`aggregate_in_box`), taken from the annotated box's frame
-    into the frame of the box used (`box_noise.reframe`)."""
+    `drive.ground_band`, the points inside the exact boxes but the road under the body (`band_sides`), taken from the
+    annotated box's frame into the frame of the box used (`box_noise.reframe`)."""
     if isinstance(reference_points, bool) or not isinstance(reference_points, int) or reference_points < 1:
         raise ValueError(f"reference_points={reference_points!r} must be an integer >= 1")
     sequence, vehicles, prep = _moving(drive, preprocessing)
@@ -203,8 +206,8 @@ def drive_pairs(drive: DriveSettings, *, n_input: int = 512, reference_points: i
         for track in tracks.values():
             if len(set(track.frames)) < 2:
                 continue
-            reference = track_reference(track.aggregate_in_box() if drive.ground_band else track.aggregate(),
-                                        reference_points, track.instance_id)
+            reference = track_reference(band_sides(track, prep.ground_clearance) if drive.ground_band
+                                        else track.aggregate(), reference_points, track.instance_id)
             if k == 0:
                 parts += [(network_input(points, n_input), box.size, reference, track.instance_id)
                           for points, box in zip(track.points, track.boxes) if len(points) >= MIN_INPUT_POINTS]
@@ -218,6 +221,15 @@ def drive_pairs(drive: DriveSettings, *, n_input: int = 512, reference_points: i
     partial, size, reference, track_id = zip(*parts)
     return DrivePairs(np.stack(partial).astype(np.float32), np.array(size, np.float32),
                       np.stack(reference).astype(np.float32), np.array(track_id, np.int64))
+
+
+def band_sides(track: VehicleTrack, ground_clearance: float) -> np.ndarray:
+    """The track's points inside its exact boxes (`VehicleTrack.in_box`) but those of the ground band (the lowest
+    `ground_clearance` metres) farther than `BAND_SIDE_ZONE` from the box's left and right sides: the band's tyres,
+    wheel arches and sills are vehicle, the road seen under the body is not."""
+    kept = [points[~in_ground_band(points, box, ground_clearance) | near_a_side(points, box)]
+            for points, box in zip(track.in_box, track.boxes)]
+    return np.concatenate(kept).astype(np.float32, copy=False) if kept else np.zeros((0, 3), np.float32)
 
 
 def track_reference(aggregate: np.ndarray, count: int, seed: int) -> np.ndarray:

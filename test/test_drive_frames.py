@@ -23,7 +23,7 @@ from gd_completion.drive_frames import (
 )
 from gd_completion.errors import DataFormatError
 from gd_completion.evaluation.nearest import nearest_sq
-from gd_completion.evaluation.pandaset_eval import PandaSetSequence, stationary_vehicles
+from gd_completion.evaluation.pandaset_eval import BAND_SIDE_ZONE, PandaSetSequence, stationary_vehicles
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.model.box_refiner import BoxFrame, frame_targets, to_frame
 from gd_completion.tools.train_refiner import read_recipe
@@ -144,14 +144,17 @@ def test_drive_pairs_give_each_crop_its_vehicles_aggregate_in_the_frame_of_the_b
     assert len(train) + len(val) == len(pairs) and not set(train.track.tolist()) & set(val.track.tolist())
 
 
-def test_drive_pairs_keep_the_ground_band_only_when_asked(shared_data):
+def test_drive_pairs_keep_the_ground_bands_sides_only_when_asked(shared_data):
     folder = str(shared_data / "pandaset-002")
     plain = drive_pairs(DriveSettings(folder, draws=0), frames=FRAMES, reference_points=512)
     band = drive_pairs(DriveSettings(folder, draws=0, ground_band=True), frames=FRAMES, reference_points=512)
     assert np.array_equal(plain.partial, band.partial) and plain.reference.shape == (len(plain), 512, 3)
     low = (-0.5 * plain.size[:, 2] + 0.1) / plain.size[:, 0]   # the ground cut, normalised
     assert not (plain.reference[..., 2] < low[:, None] - 1e-6).any()
-    assert (band.reference[..., 2] < low[:, None]).mean() > 0.02
+    in_band = band.reference[..., 2] < low[:, None]
+    assert in_band.mean() > 0.02
+    side = np.abs(band.reference[..., 1]) * band.size[:, :1] >= band.size[:, 1:2] / 2 - BAND_SIDE_ZONE - 1e-5
+    assert side[in_band].all()   # tyres, arches and sills: the road seen under the body is not vehicle
     with pytest.raises(ValueError, match="reference_points"):
         drive_pairs(DriveSettings(folder, draws=0), frames=FRAMES, reference_points=0)
     with pytest.raises(ValueError, match="ground_band"):
