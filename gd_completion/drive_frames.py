@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -87,8 +87,28 @@ class DriveSettings:
         return cls(**values)
 
 
+class _TrackSamples:
+    """Samples of a drive's vehicles (a frozen dataclass of (S, ...) arrays, one of them `track`): their count, a
+    subset, and a split that holds whole vehicles out."""
+
+    track: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.track)
+
+    def subset(self, keep: np.ndarray) -> Self:
+        """The samples where the boolean mask `keep` is true."""
+        return type(self)(*(getattr(self, f.name)[keep] for f in fields(self)))  # type: ignore[arg-type]
+
+    def split(self, val_share: float, seed: int = 0) -> tuple[Self, Self]:
+        """(training, validation) with whole vehicles held out: `val_share` of the tracks (at least one) drawn with
+        `seed` validate (`held_out`)."""
+        validate = held_out(self.track, val_share, seed)
+        return self.subset(~validate), self.subset(validate)
+
+
 @dataclass(frozen=True)
-class DriveFrames:
+class DriveFrames(_TrackSamples):
     """Refiner samples: network inputs normalised by the box used, that box's size, the true box in its frame."""
 
     partial: np.ndarray   # (S, n_input, 3) float32
@@ -96,22 +116,9 @@ class DriveFrames:
     target: np.ndarray    # (S, 7) float32: `box_refiner.BoxFrame` vector of the true box in the used box's frame
     track: np.ndarray     # (S,) int64: the vehicle's track id
 
-    def __len__(self) -> int:
-        return len(self.track)
-
-    def subset(self, keep: np.ndarray) -> DriveFrames:
-        """The samples where the boolean mask `keep` is true."""
-        return DriveFrames(self.partial[keep], self.size[keep], self.target[keep], self.track[keep])
-
-    def split(self, val_share: float, seed: int = 0) -> tuple[DriveFrames, DriveFrames]:
-        """(training, validation) with whole vehicles held out: `val_share` of the tracks (at least one) drawn with
-        `seed` validate."""
-        validate = held_out(self.track, val_share, seed)
-        return self.subset(~validate), self.subset(validate)
-
 
 @dataclass(frozen=True)
-class DrivePairs:
+class DrivePairs(_TrackSamples):
     """Completion samples: network inputs normalised by the box used, that box's size, and the vehicle's multi-frame
     aggregate in the same frame."""
 
@@ -119,18 +126,6 @@ class DrivePairs:
     size: np.ndarray        # (S, 3) float32: length, width, height of the box used
     reference: np.ndarray   # (S, R, 3) float32: the track's aggregate in the used box's frame
     track: np.ndarray       # (S,) int64: the vehicle's track id
-
-    def __len__(self) -> int:
-        return len(self.track)
-
-    def subset(self, keep: np.ndarray) -> DrivePairs:
-        """The samples where the boolean mask `keep` is true."""
-        return DrivePairs(self.partial[keep], self.size[keep], self.reference[keep], self.track[keep])
-
-    def split(self, val_share: float, seed: int = 0) -> tuple[DrivePairs, DrivePairs]:
-        """(training, validation) with whole vehicles held out, as `DriveFrames.split`."""
-        validate = held_out(self.track, val_share, seed)
-        return self.subset(~validate), self.subset(validate)
 
 
 def held_out(track: np.ndarray, val_share: float, seed: int) -> np.ndarray:
