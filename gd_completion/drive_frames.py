@@ -13,6 +13,7 @@ on vehicles it never saw (of the same drive and sensors).
 """
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, fields, replace
@@ -37,6 +38,8 @@ from gd_completion.evaluation.pandaset_eval import (
 )
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.preprocess import Preprocessing, network_input
+
+log = logging.getLogger(__name__)
 
 DRIVE_REFERENCE_POINTS = 4096   # points of a drive pair's reference (twice N_o, as the synthetic targets' gt_points)
 
@@ -163,7 +166,7 @@ def drive_frames(drive: DriveSettings, *, n_input: int = 512, preprocessing: Pre
     box (`evaluation.box_noise.noisy_box`, the sigmas of `noise` (default the evaluation's) scaled from
     `drive.sigma_scale[0]` to `[1]` over the draws, draw k seeded `drive.seed + k`), cropped through `preprocessing`
     (the contract of the checkpoint whose refiner trains) and brought to `n_input` points."""
-    sequence, vehicles, prep = _moving(drive, preprocessing)
+    sequence, vehicles, prep = _moving(drive, preprocessing, sensors)
     frames = None if frames is None else list(frames)
     parts: list[tuple[np.ndarray, tuple[float, ...], np.ndarray, int]] = []
     for k, shaken in enumerate(_draws(drive, noise)):
@@ -190,19 +193,25 @@ def drive_pairs(drive: DriveSettings, *, n_input: int = 512, reference_points: i
     with `reference_points` points drawn at random (seeded by the track; repeated when the aggregate has fewer) from
     the track's aggregate: the contract's crops of every entry (`VehicleTrack.aggregate`) or, with
     `drive.ground_band`, the points inside the exact boxes but the road under the body (`band_sides`), taken from the
-    annotated box's frame into the frame of the box used (`box_noise.reframe`)."""
+    annotated box's frame into the frame of the box used (`box_noise.reframe`). A vehicle whose aggregate holds no point
+    is skipped, and the skips counted in a warning."""
     if isinstance(reference_points, bool) or not isinstance(reference_points, int) or reference_points < 1:
         raise ValueError(f"reference_points={reference_points!r} must be an integer >= 1")
-    sequence, vehicles, prep = _moving(drive, preprocessing)
+    sequence, vehicles, prep = _moving(drive, preprocessing, sensors)
     frames = None if frames is None else list(frames)
     parts: list[tuple[np.ndarray, tuple[float, ...], np.ndarray, int]] = []
+    references: dict[int, np.ndarray | None] = {}   # the same in every pass: the annotated boxes' aggregate
     for k, shaken in enumerate(_draws(drive, noise)):
         tracks = collect_tracks(sequence, vehicles, prep, frames=frames, sensors=sensors, noise=shaken, pool_margin=0.0)
         for track in tracks.values():
             if len(set(track.frames)) < 2:
                 continue
-            reference = track_reference(band_sides(track, prep.ground_clearance) if drive.ground_band
-                                        else track.aggregate(), reference_points, track.instance_id)
+            if track.instance_id not in references:
+                references[track.instance_id] = pair_reference(track, drive.ground_band, prep.ground_clearance,
+                                                               reference_points)
+            reference = references[track.instance_id]
+            if reference is None:
+                continue
             if k == 0:
                 parts += [(network_input(points, n_input), box.size, reference, track.instance_id)
                           for points, box in zip(track.points, track.boxes) if len(points) >= MIN_INPUT_POINTS]
@@ -210,12 +219,23 @@ def drive_pairs(drive: DriveSettings, *, n_input: int = 512, reference_points: i
                        track.instance_id)
                       for crop, box in zip(track.noisy, track.boxes)
                       if crop is not None and len(crop.normalized) >= MIN_INPUT_POINTS]
+    empty = sum(r is None for r in references.values())
+    if empty:
+        log.warning("%s: %d moving vehicle(s) skipped, no point of theirs in the reference", drive.pandaset, empty)
     if not parts:
         raise DataFormatError(f"{drive.pandaset}: no moving vehicle seen in two frames with {MIN_INPUT_POINTS} points "
                               "in its box")
     partial, size, reference, track_id = zip(*parts)
     return DrivePairs(np.stack(partial).astype(np.float32), np.array(size, np.float32),
                       np.stack(reference).astype(np.float32), np.array(track_id, np.int64))
+
+
+def pair_reference(track: VehicleTrack, ground_band: bool, ground_clearance: float, count: int
+                   ) -> np.ndarray | None:
+    """A drive pair's reference of `track` (`track_reference` of its aggregate, or with `ground_band` of
+    `band_sides`), or None when that aggregate holds no point."""
+    aggregate = band_sides(track, ground_clearance) if ground_band else track.aggregate()
+    return track_reference(aggregate, count, track.instance_id) if len(aggregate) else None
 
 
 def band_sides(track: VehicleTrack, ground_clearance: float) -> np.ndarray:
@@ -237,11 +257,12 @@ def track_reference(aggregate: np.ndarray, count: int, seed: int) -> np.ndarray:
     return reference
 
 
-def _moving(drive: DriveSettings, preprocessing: Preprocessing | None
+def _moving(drive: DriveSettings, preprocessing: Preprocessing | None, sensors: Sequence[int]
             ) -> tuple[PandaSetSequence, dict[str, str], Preprocessing]:
-    """The drive, its moving vehicles (DataFormatError without any) and the contract with every crop kept."""
+    """The drive, its moving vehicles as `sensors` mark them (DataFormatError without any) and the contract with
+    every crop kept."""
     sequence = PandaSetSequence(drive.pandaset)
-    vehicles = moving_vehicles(sequence)
+    vehicles = moving_vehicles(sequence, sensors)
     if not vehicles:
         raise DataFormatError(f"{drive.pandaset}: no moving vehicle tracks")
     return sequence, vehicles, replace(preprocessing or Preprocessing(), min_points=1)

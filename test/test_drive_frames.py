@@ -18,12 +18,13 @@ from gd_completion.drive_frames import (
     drive_frames,
     drive_pairs,
     moving_vehicles,
+    pair_reference,
     track_reference,
     true_frame,
 )
 from gd_completion.errors import DataFormatError
 from gd_completion.evaluation.nearest import nearest_sq
-from gd_completion.evaluation.pandaset_eval import BAND_SIDE_ZONE, PandaSetSequence, stationary_vehicles
+from gd_completion.evaluation.pandaset_eval import BAND_SIDE_ZONE, PandaSetSequence, VehicleTrack, stationary_vehicles
 from gd_completion.geometry import Box3D, normalize
 from gd_completion.model.box_refiner import BoxFrame, frame_targets, to_frame
 from gd_completion.tools.train_refiner import read_recipe
@@ -167,3 +168,32 @@ def test_a_track_reference_draws_each_point_once_before_repeating():
     assert many.shape == (25, 3) and {tuple(p) for p in many} == {tuple(p) for p in aggregate}
     few = track_reference(aggregate, 4, seed=1)
     assert len({tuple(p) for p in few}) == 4
+
+
+@pytest.mark.parametrize("make", [drive_frames, drive_pairs])
+def test_a_drive_picks_its_moving_vehicles_with_the_sensors_it_is_given(shared_data, monkeypatch, make):
+    """Stationary for one sensor's cuboids is not stationary for another's: the sensors reach `moving_vehicles`."""
+    import gd_completion.drive_frames as module
+
+    asked = []
+
+    def recorded(sequence, sensors=(0, 1)):
+        asked.append(tuple(sensors))
+        return {}   # no vehicle: the drive is refused right after
+
+    monkeypatch.setattr(module, "moving_vehicles", recorded)
+    with pytest.raises(DataFormatError, match="no moving vehicle"):
+        make(DriveSettings(str(shared_data / "pandaset-002"), draws=0), sensors=(1,))
+    assert asked == [(1,)]
+
+
+def test_a_pair_reference_is_none_for_an_empty_aggregate():
+    """A vehicle whose only points in its box are road under the body has no band-sides reference (skipped, not a
+    crash), while its contract aggregate still gives one."""
+    box = Box3D((0.0, 0.0, 0.75), (4.5, 1.8, 1.5), 0.0, "car", 3)
+    road = np.array([[0.0, 0.0, -0.16], [0.05, 0.02, -0.165]], np.float32)   # the lowest 0.1 m, mid-footprint
+    body = np.array([[0.1, 0.0, 0.1], [0.2, 0.1, 0.05]], np.float32)
+    track = VehicleTrack("u", 3, "car", frames=[0, 1], boxes=[box, box], in_box=[road, road], reference=[body, body])
+    assert pair_reference(track, True, 0.1, 16) is None
+    reference = pair_reference(track, False, 0.1, 16)
+    assert reference is not None and reference.shape == (16, 3) and set(map(tuple, reference)) == set(map(tuple, body))
