@@ -107,6 +107,13 @@ def _plane_normals(offsets: Tensor) -> Tensor:
         return torch.linalg.eigh(covariance.double())[1][..., 0].to(offsets.dtype)
 
 
+def deformation_terms(output) -> tuple[Tensor, Tensor]:
+    """(smoothL1(P_c', P_c), 1000 L_shape(P_o, P_g)): how far the control points moved and how much the deformation
+    changed the local shape, the regularisers of `ggd_loss` and `drive_loss`."""
+    control = smooth_l1(output.control_deformed, output.control)
+    return control, laplacian_loss(output.completion, output.generated, output.neighbours) * CD_SCALE
+
+
 def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5, gamma: float = 0.0,
              rho: float = 0.0, tangential: bool = False) -> dict[str, Tensor]:
     """L = 1000 (CD(P_s, GT) + lam CD(P_o, GT)) + alpha smoothL1(P_c', P_c) + beta 1000 L_shape
@@ -121,8 +128,7 @@ def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float 
     cd, to_surface = chamfer_and_surface(output.completion, gt) if surface else \
         (chamfer_l2(output.completion, gt), None)
     cd_fine = cd.mean() * CD_SCALE
-    control = smooth_l1(output.control_deformed, output.control)
-    shape = laplacian_loss(output.completion, output.generated, output.neighbours) * CD_SCALE
+    control, shape = deformation_terms(output)
     total = cd_coarse + lam * cd_fine + alpha * control + beta * shape
     terms = {"cd_coarse": cd_coarse, "cd_fine": cd_fine, "control": control, "shape": shape}
     if to_surface is not None:
@@ -148,8 +154,7 @@ def drive_loss(output, reference: Tensor, lam: float, alpha: float = 1000.0, bet
     Returns the terms (batch means, unweighted except for their unit factors) and `total`."""
     coverage_coarse = coverage(reference, output.coarse).mean() * CD_SCALE
     coverage_fine = coverage(reference, output.completion).mean() * CD_SCALE
-    control = smooth_l1(output.control_deformed, output.control)
-    shape = laplacian_loss(output.completion, output.generated, output.neighbours) * CD_SCALE
+    control, shape = deformation_terms(output)
     total = coverage_coarse + lam * coverage_fine + alpha * control + beta * shape
     return {"total": total, "coverage_coarse": coverage_coarse, "coverage_fine": coverage_fine, "control": control,
             "shape": shape}
