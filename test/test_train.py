@@ -296,7 +296,7 @@ RECIPES = sorted(p for p in (REPO / "recipes").glob("*.json")   # ggd_v2_config 
 
 
 @pytest.mark.parametrize("path", RECIPES, ids=lambda p: p.stem)
-def test_every_recipe_in_the_repository_is_valid(path):
+def test_every_recipe_in_the_repository_is_valid(path, request, monkeypatch):
     """The recipes kept per training run parse with their sampling options and model configuration, as `train`
     reads them (no data generated), and warm-start from a run of the repository's recipes."""
     from gd_completion.cli import build_parser
@@ -305,7 +305,9 @@ def test_every_recipe_in_the_repository_is_valid(path):
     args = build_parser("train").parse_args(["train", "--output", "unused"])
     apply_recipe(args, path)
     sampling_options(args.sampling)
-    if args.drive is not None:
+    if args.drive is not None:   # a labelled drive in ../shared, named relative to the repository like the CLI's
+        request.getfixturevalue("shared_data")
+        monkeypatch.chdir(REPO)
         drive_settings(args.drive)
     config = load_config(args)
     assert config.num_output == 2048 and args.samples > 0 and args.epochs > 0
