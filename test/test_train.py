@@ -524,8 +524,13 @@ def test_train_command_takes_a_real_drive_from_its_recipe(tmp_path, shared_data,
     assert settings["drive"]["pandaset"] == folder and settings["settings"]["drive_weight"] == 3.0
     record = read_checkpoint_metadata(out / "last.pt")["history"][0]
     assert record["val_drive_coverage"] > 0 and record["train_drive_total"] > 0
+    empty = tmp_path / "empty_drive"
+    (empty / "lidar").mkdir(parents=True)   # a drive folder without a labelled frame: refused before any folder
     for bad, message in (({"draws": 0}, "needs pandaset"), ({"pandaset": folder, "sigma": 1}, "unknown drive keys"),
-                         ({"pandaset": str(tmp_path)}, "lidar/")):
+                         ({"pandaset": str(tmp_path)}, "lidar/"), ({"pandaset": str(empty)}, str(empty))):
         path.write_text(json.dumps({**recipe, "drive": bad}))
         assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "bad")]) == 2
         assert message in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    path.write_text(json.dumps({key: value for key, value in recipe.items() if key != "drive"}))   # weight, no drive
+    assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "bad")]) == 2
+    assert "without a drive" in capsys.readouterr().err and not (tmp_path / "bad").exists()

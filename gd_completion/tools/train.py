@@ -225,6 +225,8 @@ def run(args: argparse.Namespace) -> int:
         apply_recipe(args, args.recipe)
     options = sampling_options(args.sampling)   # a bad preset, configuration or setting fails before any folder
     drive = None if args.drive is None else drive_settings(args.drive)
+    if drive is None and args.drive_weight != RECIPE_DEFAULTS["drive_weight"]:
+        raise DataFormatError("a drive weight without a drive (--drive, recipe key drive) weighs nothing")
     config = load_config(args)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
@@ -233,9 +235,11 @@ def run(args: argparse.Namespace) -> int:
                              batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
                              device=device, freeze=tuple(args.freeze),
                              time_budget_s=args.time_budget)
+    spec, val_spec = dataset_specs(args, config, options)
+    # a drive without usable vehicles fails before any folder or synthetic data
+    drive_sets = None if drive is None else drive_data(drive, config.num_input, spec.preprocessing)
     make_folder(args.output)  # an unwritable output fails before any work
     cache = make_folder(args.cache or args.output)
-    spec, val_spec = dataset_specs(args, config, options)
     train_data = cached_dataset(cache, "train", spec, args.workers)
     val_data = cached_dataset(cache, "val", val_spec, args.workers)
     with atomic_path(args.output / "settings.json") as tmp:
@@ -251,6 +255,6 @@ def run(args: argparse.Namespace) -> int:
                    (val_data["partial"], val_data["complete"]) + ((val_data["size"],) if sized else ()),
                    args.output, settings, resume=args.resume,
                    init_from=args.init_from, init_skip=tuple(args.init_skip), preprocessing=spec.preprocessing,
-                   drive=None if drive is None else drive_data(drive, config.num_input, spec.preprocessing))
+                   drive=drive_sets)
     print(f"train: {result.epochs_done} epochs, best checkpoint {result.best_path}, last {result.last_path}")
     return 0
