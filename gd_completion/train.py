@@ -237,7 +237,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
 
     torch.manual_seed(settings.seed)
     model = GGDNet(config)
-    optimizer_state, resumed_freeze = None, None
+    optimizer_state, resumed_freeze, resumed_objective = None, None, None
+    objective = "cd" if drive is None else f"cd + {settings.drive_weight:g} x drive coverage"   # what best.pt minimises
     start_epoch, history, best = 0, [], math.inf
     if resume and last_path.is_file():
         data = read_checkpoint(last_path)
@@ -247,6 +248,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         config = model.config
         optimizer_state = data["optimizer"]
         resumed_freeze = tuple(data.get("settings", {}).get("freeze", ()))
+        resumed_objective = str(data.get("objective", "cd"))
         start_epoch = int(data["epoch"])
         history = list(data.get("history", []))
         best = float(data.get("best_cd", math.inf))
@@ -263,6 +265,9 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     if resumed_freeze is not None and resumed_freeze != tuple(settings.freeze):
         raise CheckpointError(f"checkpoint {last_path}: trained with freeze {list(resumed_freeze)}, resumed with "
                               f"{list(settings.freeze)}: resume with the same freeze")
+    if resumed_objective is not None and resumed_objective != objective:
+        raise CheckpointError(f"checkpoint {last_path}: its best checkpoint minimises {resumed_objective}, this run "
+                              f"{objective}: resume with the same drive and drive_weight")
     if not any(p.requires_grad for p in model.parameters()):
         raise TrainingError(f"freeze {list(settings.freeze)} leaves no parameter to train")
     model.to(device)
@@ -313,7 +318,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             raise _no_finite_step_error(epoch)
         if seen == 0:   # time budget ran out before the first batch of this epoch
             save_checkpoint(last_path, model, preprocessing, optimizer=optimizer.state_dict(), epoch=epoch,
-                            history=history, settings=asdict(settings), best_cd=best)
+                            history=history, settings=asdict(settings), best_cd=best, objective=objective)
             log.info("time budget of %s s reached before epoch %d; stopping", settings.time_budget_s, epoch + 1)
             break
         record = {"epoch": epoch + 1, "lam": lam, "lr": settings.lr_at(epoch), "seconds": time.monotonic() - t0,
@@ -331,7 +336,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                  epoch + 1, settings.epochs, lam, record["train_total"], record["val_cd_completion"],
                  record["val_cd_generated"], record["seconds"], " (partial epoch, time budget)" if stopped else "")
         done = epoch if stopped else epoch + 1     # a partial epoch is redone on resume
-        extra = {"epoch": done, "history": history, "settings": asdict(settings), "best_cd": best}
+        extra = {"epoch": done, "history": history, "settings": asdict(settings), "best_cd": best,
+                 "objective": objective}
         if not stopped and record["val_objective"] < best:
             best = record["val_objective"]
             extra["best_cd"] = best
