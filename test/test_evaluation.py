@@ -522,6 +522,12 @@ def test_heldout_mesh_set_draws_only_the_heldout_meshes(shared_data, tmp_path):
     np.testing.assert_array_equal(held.sizes, np.asarray(data["size"], np.float64))
     assert held.surface.shape == held.complete.shape and "held-out meshes of vehicle-meshes" in held.source
     assert held.meshes is not None and len(held.meshes) == 3
+    # each pair names its mesh: the named file's faces are the pair's (the vertices are scaled and deformed)
+    from gd_completion.synth.meshio import load_mesh
+
+    assert held.shapes is not None and len(held.shapes) == 3 and set(held.shapes) <= set(HELDOUT_MESHES)
+    for shape, (_, faces) in zip(held.shapes, held.meshes):
+        np.testing.assert_array_equal(faces, load_mesh(meshes / f"{shape}.ply").faces)
     with pytest.raises(EvaluationError, match="held-out meshes"):
         load_heldout_meshes(1, tmp_path)
 

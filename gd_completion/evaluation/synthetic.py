@@ -56,7 +56,8 @@ class SyntheticResult:
 class HeldOut(NamedTuple):
     """Held-out pairs; `surface` is a second uniform sample of each true surface (None when not available);
     `sizes` (S, 3) the boxes' (length, width, height) in metres, which normalised each pair; `meshes` each
-    pair's true surface, (vertices (V, 3), faces (F, 3)) in its normalised frame (None when not available)."""
+    pair's true surface, (vertices (V, 3), faces (F, 3)) in its normalised frame (None when not available); `shapes`
+    each pair's shape (a mesh file stem; None when not known)."""
 
     partial: np.ndarray
     complete: np.ndarray
@@ -64,6 +65,7 @@ class HeldOut(NamedTuple):
     surface: np.ndarray | None = None
     sizes: np.ndarray | None = None
     meshes: list[tuple[np.ndarray, np.ndarray]] | None = None
+    shapes: tuple[str, ...] | None = None
 
 
 @dataclass
@@ -147,8 +149,10 @@ def load_heldout_meshes(n_samples: int, mesh_dir: str | Path, *, seed: int = EVA
         raise EvaluationError(f"held-out meshes: {exc}") from exc
     partial, complete = _pairs(data, "build_dataset")
     where = f"the {found} held-out meshes of {Path(mesh_dir).name} ({', '.join(HELDOUT_MESHES)}), seed {seed}"
+    names = [path.stem for path in mesh_files(mesh_dir) if path.stem in HELDOUT_MESHES]   # kind "mesh:<i>": the i-th
+    shapes = tuple(names[int(kind.removeprefix("mesh:"))] for kind in data["kind"])
     return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32),
-                   _sizes(data, len(partial), where), _pair_meshes(data))
+                   _sizes(data, len(partial), where), _pair_meshes(data), shapes)
 
 
 def _chamfer_row(output: np.ndarray, complete: np.ndarray) -> tuple[dict[str, float], Tensor]:
