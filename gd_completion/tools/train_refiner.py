@@ -61,9 +61,12 @@ def drive_settings(values: Any, path: Path) -> DriveSettings:
     from gd_completion.drive_frames import DriveSettings
 
     try:
-        return DriveSettings.from_dict(values)
+        drive = DriveSettings.from_dict(values)
     except (TypeError, ValueError) as exc:
         raise DataFormatError(f"{path}: drive: {exc}") from exc
+    if drive.ground_band:
+        raise DataFormatError(f"{path}: drive: ground_band shapes completion references; a refiner learns boxes")
+    return drive
 
 
 def drive_data(drive: DriveSettings, n_input: int, base: Path) -> tuple[FrameData, FrameData]:
