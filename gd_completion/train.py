@@ -1,6 +1,7 @@
 """Training of GGDNet on (partial, complete) pairs: lambda schedule, validation, resumable checkpoints."""
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import time
@@ -238,7 +239,6 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     torch.manual_seed(settings.seed)
     model = GGDNet(config)
     optimizer_state, resumed_freeze, resumed_objective = None, None, None
-    objective = "cd" if drive is None else f"cd + {settings.drive_weight:g} x drive coverage"   # what best.pt minimises
     start_epoch, history, best = 0, [], math.inf
     if resume and last_path.is_file():
         data = read_checkpoint(last_path)
@@ -261,13 +261,15 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     va_x, va_y, va_s = _pairs(val_data, "validation data", config)
     drive_train, drive_val = (None, None) if drive is None else (
         _pairs(drive[0], "drive training data", config, 1), _pairs(drive[1], "drive validation data", config, 1))
+    objective = "cd" if drive_val is None else (   # what best.pt minimises, naming the drive pairs that validate
+        f"cd + {settings.drive_weight:g} x drive coverage of {_digest(drive_val)}")
     frozen = frozen_modules(model, settings.freeze)
     if resumed_freeze is not None and resumed_freeze != tuple(settings.freeze):
         raise CheckpointError(f"checkpoint {last_path}: trained with freeze {list(resumed_freeze)}, resumed with "
                               f"{list(settings.freeze)}: resume with the same freeze")
     if resumed_objective is not None and resumed_objective != objective:
         raise CheckpointError(f"checkpoint {last_path}: its best checkpoint minimises {resumed_objective}, this run "
-                              f"{objective}: resume with the same drive and drive_weight")
+                              f"{objective}: resume with the same drive (settings and pairs) and drive_weight")
     if not any(p.requires_grad for p in model.parameters()):
         raise TrainingError(f"freeze {list(settings.freeze)} leaves no parameter to train")
     model.to(device)
@@ -348,6 +350,15 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             break
     return TrainResult(out_dir=out_dir, last_path=last_path, best_path=best_path if best_path.is_file() else None,
                        epochs_done=done, stopped_early=stopped, history=history)
+
+
+def _digest(tensors: Sequence[torch.Tensor | None]) -> str:
+    """The first 12 hex digits of the SHA-256 of `tensors`' values (float32): which data a figure was measured on."""
+    digest = hashlib.sha256()
+    for tensor in tensors:
+        if tensor is not None:
+            digest.update(tensor.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
+    return digest.hexdigest()[:12]
 
 
 def _with_drive(losses: dict[str, torch.Tensor], model: GGDNet,
