@@ -438,8 +438,8 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     from gd_completion.evaluation.synthetic import EVAL_SEED, load_heldout
     from gd_completion.synth import dataset
 
-    partial, complete, source, surface, sizes, meshes = load_heldout(2)
-    assert len(meshes) == 2 and all(v.shape[1] == 3 and f.shape[1] == 3 for v, f in meshes)
+    partial, complete, source, surface, sizes, meshes, shapes = load_heldout(2)
+    assert shapes is None and len(meshes) == 2 and all(v.shape[1] == 3 and f.shape[1] == 3 for v, f in meshes)
     assert partial.shape == (2, 1024, 3) and complete.shape == (2, 2048, 3) and surface.shape == (2, 2048, 3)
     assert str(EVAL_SEED) in source
     # the second surface sample is another sample of the same shape, not a copy, and leaves the pair unchanged
@@ -454,9 +454,9 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     training = dataset.build_dataset(2, 0)
     assert not np.allclose(training["complete"], complete)  # evaluation shapes are not the seed-0 shapes
     path = dataset.save_dataset(tmp_path / "heldout.npz", dataset.build_dataset(3, EVAL_SEED + 1))
-    p2, c2, source2, surface2, sizes2, meshes2 = load_heldout(2, path=path)
+    p2, c2, source2, surface2, sizes2, meshes2, shapes2 = load_heldout(2, path=path)
     assert p2.shape == (2, 1024, 3) and c2.shape == (2, 2048, 3) and "heldout.npz" in source2 and surface2 is None
-    assert meshes2 is None   # a file holds no meshes
+    assert meshes2 is None and shapes2 is None   # a file holds no meshes and names no shape
     assert sizes2.shape == (2, 3) and np.all(sizes2[:, 0] > sizes2[:, 1])  # (length, width, height) of the set
     data = dataset.load_dataset(path)
     del data["size"]
