@@ -40,6 +40,7 @@ class TrainSettings:
     rho: float = 0.0                # weight of the repulsion term (0: the paper's loss); see losses.ggd_loss
     tangential: bool = False        # the repulsion term within each point's plane; see losses.repulsion
     drive_weight: float = 1.0       # weight of the real drive's batches (`train(drive=)`; losses.drive_loss)
+    drive_precision: float = 0.0    # weight of the drive's precision term (0: coverage only); see losses.drive_loss
     batch_size: int = 32
     lr: float = 1e-3                # paper: 0.01; see docs/MODEL.md
     lr_final: float | None = None   # cosine decay per epoch from lr to lr_final (None: constant lr)
@@ -51,7 +52,8 @@ class TrainSettings:
     time_budget_s: float | None = None
 
     def __post_init__(self) -> None:
-        bad = [name for name in ("gamma", "rho", "drive_weight") if not getattr(self, name) >= 0]   # NaN too
+        bad = [name for name in ("gamma", "rho", "drive_weight", "drive_precision")
+               if not getattr(self, name) >= 0]   # NaN too
         if bad:
             raise TrainingError(f"the weight of {' and '.join(bad)} must be >= 0 (0 leaves its term out); got "
                                 + ", ".join(f"{name} {getattr(self, name)}" for name in bad))
@@ -369,6 +371,6 @@ def _with_drive(losses: dict[str, torch.Tensor], model: GGDNet,
     idx = order[torch.arange(start, start + count) % order.numel()]
     partial, reference, shapes = drive
     terms = drive_loss(model(partial[idx].to(device), _rows(shapes, idx, device)), reference[idx].to(device),
-                       lam=lam, alpha=settings.alpha, beta=settings.beta)
+                       lam=lam, alpha=settings.alpha, beta=settings.beta, precision=settings.drive_precision)
     return {**losses, "total": losses["total"] + settings.drive_weight * terms["total"],
             **{f"drive_{k}": v for k, v in terms.items()}}

@@ -465,7 +465,7 @@ def test_a_negative_loss_weight_is_refused_before_any_training(weights, tmp_path
 def test_drive_loss_counts_only_the_references_coverage():
     """A real drive's aggregate is partial: output points where it has none cost nothing, its points left uncovered
     do."""
-    from gd_completion.model.losses import chamfer_l2_directional, coverage, drive_loss
+    from gd_completion.model.losses import chamfer_l2_directional, coverage, drive_loss, near_surface_distance
 
     torch.manual_seed(0)
     model = GGDNet(TINY).eval()
@@ -480,6 +480,18 @@ def test_drive_loss_counts_only_the_references_coverage():
     terms = drive_loss(out, moved, lam=3.0)
     assert terms["coverage_fine"] > 0 and terms["total"] == pytest.approx(
         (terms["coverage_coarse"] + 3 * terms["coverage_fine"] + 1000 * terms["control"] + 0.5 * terms["shape"]).item())
+    assert "near_surface" not in terms
+    # the precision term: a point within the cap of the reference pays its distance, a farther one the cap, unpulled
+    precise = drive_loss(out, moved, lam=3.0, precision=2.0, cap=0.05)
+    distance = torch.cdist(out.completion, moved).min(-1).values
+    assert 0 < (distance < 0.05).float().mean() < 1   # both kinds of points are there
+    assert precise["near_surface"].item() == pytest.approx(100 * distance.clamp(max=0.05).mean().item(), rel=1e-4)
+    assert precise["total"].item() == pytest.approx(terms["total"].item() + 2.0 * precise["near_surface"].item(),
+                                                    rel=1e-5)
+    points = out.completion.clone().requires_grad_(True)
+    near_surface_distance(points, moved, cap=0.05).sum().backward()
+    pulled = points.grad.norm(dim=-1) > 0
+    assert torch.equal(pulled, distance < 0.05)
 
 
 def test_training_with_a_drive_adds_its_batches_and_validates_on_it(tmp_path):
@@ -527,15 +539,17 @@ def test_train_command_takes_a_real_drive_from_its_recipe(tmp_path, shared_data,
     folder = str(shared_data / "pandaset-002")
     recipe = {"name": "tiny_drive", "config": {**TINY.to_dict(), "box_conditioning": True}, "sampling": "v2",
               "samples": 4, "val_samples": 2, "epochs": 1, "generation_epochs": 0, "batch_size": 2,
-              "drive": {"pandaset": folder, "draws": 0, "val_share": 0.2}, "drive_weight": 3.0}
+              "drive": {"pandaset": folder, "draws": 0, "val_share": 0.2}, "drive_weight": 3.0, "drive_precision": 1.0}
     path = tmp_path / "recipe.json"
     path.write_text(json.dumps(recipe))
     out = tmp_path / "run"
     assert main(["train", "--recipe", str(path), "--output", str(out), "--workers", "1"]) == 0
     settings = json.loads((out / "settings.json").read_text())
     assert settings["drive"]["pandaset"] == folder and settings["settings"]["drive_weight"] == 3.0
+    assert settings["settings"]["drive_precision"] == 1.0
     record = read_checkpoint_metadata(out / "last.pt")["history"][0]
     assert record["val_drive_coverage"] > 0 and record["train_drive_total"] > 0
+    assert record["train_drive_near_surface"] > 0
     empty = tmp_path / "empty_drive"
     (empty / "lidar").mkdir(parents=True)   # a drive folder without a labelled frame: refused before any folder
     for bad, message in (({"draws": 0}, "needs pandaset"), ({"pandaset": folder, "sigma": 1}, "unknown drive keys"),
@@ -543,6 +557,8 @@ def test_train_command_takes_a_real_drive_from_its_recipe(tmp_path, shared_data,
         path.write_text(json.dumps({**recipe, "drive": bad}))
         assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "bad")]) == 2
         assert message in capsys.readouterr().err and not (tmp_path / "bad").exists()
-    path.write_text(json.dumps({key: value for key, value in recipe.items() if key != "drive"}))   # weight, no drive
-    assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "bad")]) == 2
-    assert "without a drive" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    for name, other in (("drive_weight", "drive_precision"), ("drive_precision", "drive_weight")):   # no drive
+        path.write_text(json.dumps({key: value for key, value in recipe.items() if key not in ("drive", other)}))
+        assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "bad")]) == 2
+        assert f"a {name.replace('_', ' ')} without a drive" in capsys.readouterr().err
+        assert not (tmp_path / "bad").exists()

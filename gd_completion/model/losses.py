@@ -12,6 +12,7 @@ from .ops import flat_index, gather_points, nearest_index, neighbour_mean
 CD_SCALE = 1000.0
 # The surface term is reported in units of 1e-2 (per cent of the vehicle's length).
 SURFACE_SCALE = 100.0
+NEAR_REFERENCE = 0.03   # `drive_loss`'s precision term: output points farther from the partial reference feel no pull
 # The repulsion term's radius (normalised frame): about the spacing of N_o = 2,048 points spread evenly over a car's
 # surface (about 2 square lengths: 1e-3 each, 0.03 apart).
 REPULSION_RADIUS = 0.03
@@ -146,15 +147,27 @@ def coverage(reference: Tensor, points: Tensor) -> Tensor:
     return _squared_to(reference, points, nearest_index(reference, points)).mean(1)
 
 
-def drive_loss(output, reference: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5) -> dict[str, Tensor]:
+def near_surface_distance(points: Tensor, reference: Tensor, cap: float) -> Tensor:
+    """(B,): mean over `points` (B, N, 3) of the unsquared distance to the nearest point of `reference`, capped at
+    `cap`: a point within `cap` of a partial reference is pulled onto it, one farther away (where the reference may
+    simply not have been seen) costs a constant and feels no pull."""
+    return (_squared_to(points, reference, nearest_index(points, reference)) + 1e-12).sqrt().clamp(max=cap).mean(1)
+
+
+def drive_loss(output, reference: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5,
+               precision: float = 0.0, cap: float = NEAR_REFERENCE) -> dict[str, Tensor]:
     """`ggd_loss` for a partial reference (a real drive's multi-frame aggregate, `drive_frames.drive_pairs`): what
     is missing from it may still be vehicle, so only its coverage counts, L = 1000 (coverage(P_s) + lam
-    coverage(P_o)) + alpha smoothL1(P_c', P_c) + beta 1000 L_shape (a deviation from the paper).
+    coverage(P_o)) + alpha smoothL1(P_c', P_c) + beta 1000 L_shape [+ precision 100 near_surface_distance(P_o,
+    reference, cap) when precision > 0: the points near the reference kept on it] (a deviation from the paper).
 
     Returns the terms (batch means, unweighted except for their unit factors) and `total`."""
     coverage_coarse = coverage(reference, output.coarse).mean() * CD_SCALE
     coverage_fine = coverage(reference, output.completion).mean() * CD_SCALE
     control, shape = deformation_terms(output)
     total = coverage_coarse + lam * coverage_fine + alpha * control + beta * shape
-    return {"total": total, "coverage_coarse": coverage_coarse, "coverage_fine": coverage_fine, "control": control,
-            "shape": shape}
+    terms = {"coverage_coarse": coverage_coarse, "coverage_fine": coverage_fine, "control": control, "shape": shape}
+    if precision > 0:
+        terms["near_surface"] = near_surface_distance(output.completion, reference, cap).mean() * SURFACE_SCALE
+        total = total + precision * terms["near_surface"]
+    return {"total": total, **terms}

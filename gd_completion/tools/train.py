@@ -64,6 +64,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "counts); in a recipe an object of drive_frames.DriveSettings' fields")
     parser.add_argument("--drive-weight", type=float, default=1.0,
                         help="weight of the drive's batches in the loss (default 1)")
+    parser.add_argument("--drive-precision", type=float, default=0.0,
+                        help="weight of the drive's precision term: each output point's distance to the vehicle's "
+                        "aggregate, capped at 0.03 (normalised) so points where the aggregate saw nothing feel no "
+                        "pull, x100 (default 0: coverage only)")
     parser.add_argument("--gt-points", type=int, default=None,
                         help="points sampled on each ground-truth surface (default: the model's N_o); denser targets "
                         "make the nearest ground-truth point a closer stand-in for the surface")
@@ -96,8 +100,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 #: Options a recipe may set (argparse destinations), and their command-line defaults.
 RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "epochs", "generation_epochs", "lam", "alpha", "beta",
-               "gamma", "rho", "tangential", "drive", "drive_weight", "gt_points", "batch_size", "lr", "lr_final",
-               "num_control", "config", "init_from", "init_skip", "sampling", "freeze")
+               "gamma", "rho", "tangential", "drive", "drive_weight", "drive_precision", "gt_points", "batch_size",
+               "lr", "lr_final", "num_control", "config", "init_from", "init_skip", "sampling", "freeze")
 RECIPE_DEFAULTS: dict[str, Any] = {}
 _PATH_KEYS = ("meshes", "init_from")
 SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
@@ -225,13 +229,16 @@ def run(args: argparse.Namespace) -> int:
         apply_recipe(args, args.recipe)
     options = sampling_options(args.sampling)   # a bad preset, configuration or setting fails before any folder
     drive = None if args.drive is None else drive_settings(args.drive)
-    if drive is None and args.drive_weight != RECIPE_DEFAULTS["drive_weight"]:
-        raise DataFormatError("a drive weight without a drive (--drive, recipe key drive) weighs nothing")
+    for name in ("drive_weight", "drive_precision"):
+        if drive is None and getattr(args, name) != RECIPE_DEFAULTS[name]:
+            raise DataFormatError(f"a {name.replace('_', ' ')} without a drive (--drive, recipe key drive) weighs "
+                                  "nothing")
     config = load_config(args)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
                              alpha=args.alpha, beta=args.beta, gamma=args.gamma, rho=args.rho,
                              tangential=args.tangential, drive_weight=args.drive_weight,
+                             drive_precision=args.drive_precision,
                              batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
                              device=device, freeze=tuple(args.freeze),
                              time_budget_s=args.time_budget)
