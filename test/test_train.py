@@ -328,7 +328,8 @@ def test_the_repository_keeps_its_recipes():
     ("docs/evaluation/ablation/ggd_v2_stage6.pt", "ggd_v2_stage6", None),     # measured, kept, not shipped
     ("docs/evaluation/ablation/ggd_v3_surface.pt", "ggd_v3_surface", 3),      # v3's first run: 3 of 5 epochs
     ("docs/evaluation/ablation/ggd_v3.pt", "ggd_v3b_noise", None),            # model v3
-    ("gd_completion/weights/ggd_vehicles.pt", "ggd_v3h_drive", None),         # shipped (model v3.1)
+    ("docs/evaluation/ablation/ggd_v31.pt", "ggd_v3h_drive", None),           # model v3.1
+    ("gd_completion/weights/ggd_vehicles.pt", "ggd_v3i_precision", None),     # shipped (model v3.2)
 ])
 def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name, epochs_done):
     """README, model card and MODEL.md name the recipe of each kept checkpoint: its schedule, seed, loss weights and
@@ -337,9 +338,9 @@ def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name
     meta = read_checkpoint_metadata(REPO / weights)
     assert meta["epoch"] == (epochs_done or recipe["epochs"]) == len(meta["history"])
     for key in ("epochs", "generation_epochs", "lam", "batch_size", "lr", "lr_final", "seed", "gamma", "freeze",
-                "drive_weight"):
-        if key in recipe or (key in meta["settings"] and (key != "drive_weight" or "drive" in recipe)):
-            expected = recipe.get(key, {"gamma": 0.0, "drive_weight": 1.0}.get(key, []))
+                "drive_weight", "drive_precision"):
+        if key in recipe or (key in meta["settings"] and (not key.startswith("drive_") or "drive" in recipe)):
+            expected = recipe.get(key, {"gamma": 0.0, "drive_weight": 1.0, "drive_precision": 0.0}.get(key, []))
             assert meta["settings"][key] == (tuple(expected) if key == "freeze" else expected), key
     assert GGDConfig.from_dict(meta["config"]) == GGDConfig.from_dict(recipe["config"])
 
