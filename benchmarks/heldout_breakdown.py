@@ -8,7 +8,8 @@ PandaSet-like loose boxes, for one or more checkpoints in one run:
   other sign than the median measured point's), on the seen side, and in the lowest `--band` of the box height;
 - the same pairs given boxes longer by 2 x END and wider by 2 x SIDE metres (`--loose END:SIDE ...`, centre and heading
   kept; PandaSet's annotated boxes reach about 0.10 m past each end of its vehicles and 0.02-0.05 m past each side),
-  the output scaled back into the tight box's frame before it is scored against the same meshes.
+  the output scaled back into the tight box's frame before it is scored against the same meshes (the same measured
+  points, rescaled: a wider box in a scene would also crop what lies beside the vehicle, which the pairs hold none of).
 
     python benchmarks/heldout_breakdown.py [--models PT ...] [--meshes DIR] [--heldout N] [--loose END:SIDE ...]
 """
@@ -84,8 +85,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     heldout = load_heldout_meshes(args.heldout, args.meshes)
-    assert heldout.shapes is not None and heldout.surface is not None and heldout.sizes is not None
-    shapes = np.array(heldout.shapes)
+    assert heldout.mesh_names is not None and heldout.surface is not None and heldout.sizes is not None
+    shapes = np.array(heldout.mesh_names)
     sizes = np.asarray(heldout.sizes, np.float64)
     print(f"held-out meshes, {len(shapes)} pairs; CD, CD(D,G) x1e4, F-score@1 %, on the surface (within 2 %)")
     for path in args.models:

@@ -40,7 +40,8 @@ class TrainSettings:
     rho: float = 0.0                # weight of the repulsion term (0: the paper's loss); see losses.ggd_loss
     tangential: bool = False        # the repulsion term within each point's plane; see losses.repulsion
     drive_weight: float = 1.0       # weight of the real drive's batches (`train(drive=)`; losses.drive_loss)
-    drive_precision: float = 0.0    # weight of the drive's precision term (0: coverage only); see losses.drive_loss
+    drive_precision: float = 0.0    # the drive's precision term in its loss, so x drive_weight (0: coverage only);
+    #                                 see losses.drive_loss. best.pt's objective does not count it
     batch_size: int = 32
     lr: float = 1e-3                # paper: 0.01; see docs/MODEL.md
     lr_final: float | None = None   # cosine decay per epoch from lr to lr_final (None: constant lr)
@@ -250,7 +251,8 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         config = model.config
         optimizer_state = data["optimizer"]
         resumed_freeze = tuple(data.get("settings", {}).get("freeze", ()))
-        resumed_objective = str(data.get("objective", "cd"))
+        trained_on_drive = any("val_drive_coverage" in record for record in data.get("history", []))
+        resumed_objective = str(data.get("objective", "cd + drive coverage" if trained_on_drive else "cd"))
         start_epoch = int(data["epoch"])
         history = list(data.get("history", []))
         best = float(data.get("best_cd", math.inf))
@@ -270,8 +272,11 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         raise CheckpointError(f"checkpoint {last_path}: trained with freeze {list(resumed_freeze)}, resumed with "
                               f"{list(settings.freeze)}: resume with the same freeze")
     if resumed_objective is not None and resumed_objective != objective:
+        older = resumed_objective.startswith("cd + ") and " of " not in resumed_objective
         raise CheckpointError(f"checkpoint {last_path}: its best checkpoint minimises {resumed_objective}, this run "
-                              f"{objective}: resume with the same drive (settings and pairs) and drive_weight")
+                              f"{objective}: " + ("the checkpoint was written before objectives named their drive "
+                                                  "pairs; start a new run" if older else
+                                                  "resume with the same drive (settings and pairs) and drive_weight"))
     if not any(p.requires_grad for p in model.parameters()):
         raise TrainingError(f"freeze {list(settings.freeze)} leaves no parameter to train")
     model.to(device)

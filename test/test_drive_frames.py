@@ -101,7 +101,7 @@ def test_a_split_holds_out_whole_vehicles():
     ({"pandaset": "P", "sigma_scale": [1.4, 0.8]}, "sigma_scale"),
     ({"pandaset": "P", "sigma_scale": [1]}, "sigma_scale"),
     ({"pandaset": "P", "seed": 1.5}, "seed"), ({"pandaset": "absent"}, "lidar/"), ([], "object"),
-    ({"pandaset": "P", "ground_band": True}, "ground_band shapes completion references")])
+    ({"pandaset": "P", "ground_band": True}, "ground_band applies to completion training only")])
 def test_a_refiner_recipe_drive_is_checked_before_any_data(tmp_path, shared_data, drive_entry, message):
     """Every `drive` value is checked when the recipe is read, before any folder or data is made."""
     if isinstance(drive_entry, dict) and drive_entry.get("pandaset") == "P":

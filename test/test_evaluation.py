@@ -438,8 +438,8 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     from gd_completion.evaluation.synthetic import EVAL_SEED, load_heldout
     from gd_completion.synth import dataset
 
-    partial, complete, source, surface, sizes, meshes, shapes = load_heldout(2)
-    assert shapes is None and len(meshes) == 2 and all(v.shape[1] == 3 and f.shape[1] == 3 for v, f in meshes)
+    partial, complete, source, surface, sizes, meshes, mesh_names = load_heldout(2)
+    assert mesh_names is None and len(meshes) == 2 and all(v.shape[1] == 3 and f.shape[1] == 3 for v, f in meshes)
     assert partial.shape == (2, 1024, 3) and complete.shape == (2, 2048, 3) and surface.shape == (2, 2048, 3)
     assert str(EVAL_SEED) in source
     # the second surface sample is another sample of the same shape, not a copy, and leaves the pair unchanged
@@ -454,9 +454,9 @@ def test_load_heldout_uses_the_synth_dataset(tmp_path):
     training = dataset.build_dataset(2, 0)
     assert not np.allclose(training["complete"], complete)  # evaluation shapes are not the seed-0 shapes
     path = dataset.save_dataset(tmp_path / "heldout.npz", dataset.build_dataset(3, EVAL_SEED + 1))
-    p2, c2, source2, surface2, sizes2, meshes2, shapes2 = load_heldout(2, path=path)
+    p2, c2, source2, surface2, sizes2, meshes2, names2 = load_heldout(2, path=path)
     assert p2.shape == (2, 1024, 3) and c2.shape == (2, 2048, 3) and "heldout.npz" in source2 and surface2 is None
-    assert meshes2 is None and shapes2 is None   # a file holds no meshes and names no shape
+    assert meshes2 is None and names2 is None   # a file holds no meshes and names no shape
     assert sizes2.shape == (2, 3) and np.all(sizes2[:, 0] > sizes2[:, 1])  # (length, width, height) of the set
     data = dataset.load_dataset(path)
     del data["size"]
@@ -510,7 +510,7 @@ def test_heldout_mesh_set_draws_only_the_heldout_meshes(shared_data, tmp_path):
     from gd_completion.errors import EvaluationError
     from gd_completion.evaluation.synthetic import load_heldout_meshes
     from gd_completion.synth.dataset import build_dataset
-    from gd_completion.synth.meshio import HELDOUT_MESHES
+    from gd_completion.synth.meshio import HELDOUT_MESHES, load_mesh
 
     meshes = shared_data / "vehicle-meshes"
     held = load_heldout_meshes(3, meshes, seed=5)
@@ -523,11 +523,9 @@ def test_heldout_mesh_set_draws_only_the_heldout_meshes(shared_data, tmp_path):
     assert held.surface.shape == held.complete.shape and "held-out meshes of vehicle-meshes" in held.source
     assert held.meshes is not None and len(held.meshes) == 3
     # each pair names its mesh: the named file's faces are the pair's (the vertices are scaled and deformed)
-    from gd_completion.synth.meshio import load_mesh
-
-    assert held.shapes is not None and len(held.shapes) == 3 and set(held.shapes) <= set(HELDOUT_MESHES)
-    for shape, (_, faces) in zip(held.shapes, held.meshes):
-        np.testing.assert_array_equal(faces, load_mesh(meshes / f"{shape}.ply").faces)
+    assert held.mesh_names is not None and len(held.mesh_names) == 3 and set(held.mesh_names) <= set(HELDOUT_MESHES)
+    for name, (_, faces) in zip(held.mesh_names, held.meshes):
+        np.testing.assert_array_equal(faces, load_mesh(meshes / f"{name}.ply").faces)
     with pytest.raises(EvaluationError, match="held-out meshes"):
         load_heldout_meshes(1, tmp_path)
 

@@ -466,7 +466,7 @@ def test_a_negative_loss_weight_is_refused_before_any_training(weights, tmp_path
 def test_drive_loss_counts_only_the_references_coverage():
     """A real drive's aggregate is partial: output points where it has none cost nothing, its points left uncovered
     do."""
-    from gd_completion.model.losses import chamfer_l2_directional, coverage, drive_loss, near_surface_distance
+    from gd_completion.model.losses import chamfer_l2_directional, coverage, drive_loss, near_reference_distance
 
     torch.manual_seed(0)
     model = GGDNet(TINY).eval()
@@ -481,16 +481,16 @@ def test_drive_loss_counts_only_the_references_coverage():
     terms = drive_loss(out, moved, lam=3.0)
     assert terms["coverage_fine"] > 0 and terms["total"] == pytest.approx(
         (terms["coverage_coarse"] + 3 * terms["coverage_fine"] + 1000 * terms["control"] + 0.5 * terms["shape"]).item())
-    assert "near_surface" not in terms
+    assert "near_reference" not in terms
     # the precision term: a point within the cap of the reference pays its distance, a farther one the cap, unpulled
     precise = drive_loss(out, moved, lam=3.0, precision=2.0, cap=0.05)
     distance = torch.cdist(out.completion, moved).min(-1).values
     assert 0 < (distance < 0.05).float().mean() < 1   # both kinds of points are there
-    assert precise["near_surface"].item() == pytest.approx(100 * distance.clamp(max=0.05).mean().item(), rel=1e-4)
-    assert precise["total"].item() == pytest.approx(terms["total"].item() + 2.0 * precise["near_surface"].item(),
+    assert precise["near_reference"].item() == pytest.approx(100 * distance.clamp(max=0.05).mean().item(), rel=1e-4)
+    assert precise["total"].item() == pytest.approx(terms["total"].item() + 2.0 * precise["near_reference"].item(),
                                                     rel=1e-5)
     points = out.completion.clone().requires_grad_(True)
-    near_surface_distance(points, moved, cap=0.05).sum().backward()
+    near_reference_distance(points, moved, cap=0.05).sum().backward()
     pulled = points.grad.norm(dim=-1) > 0
     assert torch.equal(pulled, distance < 0.05)
 
@@ -529,6 +529,14 @@ def test_training_with_a_drive_adds_its_batches_and_validates_on_it(tmp_path):
                     _settings(epochs=5, generation_epochs=1, drive_weight=2.0), resume=True, drive=drive)
     assert resumed.epochs_done == 5 and "val_drive_coverage" in resumed.history[-1]
     assert read_checkpoint_metadata(tmp_path / "d" / "best.pt")["objective"].startswith("cd + 2 x drive coverage of ")
+    # a checkpoint from before objectives named their drive pairs cannot say which pairs it validated on: refused
+    last = torch.load(tmp_path / "d" / "last.pt", map_location="cpu", weights_only=False)
+    torch.save({**last, "objective": "cd + 2 x drive coverage"}, tmp_path / "d" / "last.pt")
+    with pytest.raises(CheckpointError, match="written before objectives named their drive pairs"):
+        train(TINY, _data(8, 0), _data(4, 1), tmp_path / "d", _settings(epochs=6, generation_epochs=1,
+                                                                        drive_weight=2.0), resume=True, drive=drive)
+    with pytest.raises(TrainingError, match="drive_precision"):
+        TrainSettings(drive_precision=-1.0)
 
 
 @pytest.mark.integration
@@ -550,7 +558,7 @@ def test_train_command_takes_a_real_drive_from_its_recipe(tmp_path, shared_data,
     assert settings["settings"]["drive_precision"] == 1.0
     record = read_checkpoint_metadata(out / "last.pt")["history"][0]
     assert record["val_drive_coverage"] > 0 and record["train_drive_total"] > 0
-    assert record["train_drive_near_surface"] > 0
+    assert record["train_drive_near_reference"] > 0
     empty = tmp_path / "empty_drive"
     (empty / "lidar").mkdir(parents=True)   # a drive folder without a labelled frame: refused before any folder
     for bad, message in (({"draws": 0}, "needs pandaset"), ({"pandaset": folder, "sigma": 1}, "unknown drive keys"),

@@ -56,8 +56,8 @@ class SyntheticResult:
 class HeldOut(NamedTuple):
     """Held-out pairs; `surface` is a second uniform sample of each true surface (None when not available);
     `sizes` (S, 3) the boxes' (length, width, height) in metres, which normalised each pair; `meshes` each
-    pair's true surface, (vertices (V, 3), faces (F, 3)) in its normalised frame (None when not available); `shapes`
-    each pair's shape (a mesh file stem; None when not known)."""
+    pair's true surface, (vertices (V, 3), faces (F, 3)) in its normalised frame (None when not available);
+    `mesh_names` each pair's mesh (its file stem; None when the shapes are not meshes of a folder)."""
 
     partial: np.ndarray
     complete: np.ndarray
@@ -65,7 +65,7 @@ class HeldOut(NamedTuple):
     surface: np.ndarray | None = None
     sizes: np.ndarray | None = None
     meshes: list[tuple[np.ndarray, np.ndarray]] | None = None
-    shapes: tuple[str, ...] | None = None
+    mesh_names: tuple[str, ...] | None = None
 
 
 @dataclass
@@ -150,9 +150,9 @@ def load_heldout_meshes(n_samples: int, mesh_dir: str | Path, *, seed: int = EVA
     partial, complete = _pairs(data, "build_dataset")
     where = f"the {found} held-out meshes of {Path(mesh_dir).name} ({', '.join(HELDOUT_MESHES)}), seed {seed}"
     names = [path.stem for path in mesh_files(mesh_dir) if path.stem in HELDOUT_MESHES]   # kind "mesh:<i>": the i-th
-    shapes = tuple(names[int(kind.removeprefix("mesh:"))] for kind in data["kind"])
+    mesh_names = tuple(names[int(kind.removeprefix("mesh:"))] for kind in data["kind"])
     return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32),
-                   _sizes(data, len(partial), where), _pair_meshes(data), shapes)
+                   _sizes(data, len(partial), where), _pair_meshes(data), mesh_names)
 
 
 def _chamfer_row(output: np.ndarray, complete: np.ndarray) -> tuple[dict[str, float], Tensor]:

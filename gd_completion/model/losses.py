@@ -147,7 +147,7 @@ def coverage(reference: Tensor, points: Tensor) -> Tensor:
     return _squared_to(reference, points, nearest_index(reference, points)).mean(1)
 
 
-def near_surface_distance(points: Tensor, reference: Tensor, cap: float) -> Tensor:
+def near_reference_distance(points: Tensor, reference: Tensor, cap: float) -> Tensor:
     """(B,): mean over `points` (B, N, 3) of the unsquared distance to the nearest point of `reference`, capped at
     `cap`: a point within `cap` of a partial reference is pulled onto it, one farther away (where the reference may
     simply not have been seen) costs a constant and feels no pull."""
@@ -158,7 +158,7 @@ def drive_loss(output, reference: Tensor, lam: float, alpha: float = 1000.0, bet
                precision: float = 0.0, cap: float = NEAR_REFERENCE) -> dict[str, Tensor]:
     """`ggd_loss` for a partial reference (a real drive's multi-frame aggregate, `drive_frames.drive_pairs`): what
     is missing from it may still be vehicle, so only its coverage counts, L = 1000 (coverage(P_s) + lam
-    coverage(P_o)) + alpha smoothL1(P_c', P_c) + beta 1000 L_shape [+ precision 100 near_surface_distance(P_o,
+    coverage(P_o)) + alpha smoothL1(P_c', P_c) + beta 1000 L_shape [+ precision 100 near_reference_distance(P_o,
     reference, cap) when precision > 0: the points near the reference kept on it] (a deviation from the paper).
 
     Returns the terms (batch means, unweighted except for their unit factors) and `total`."""
@@ -168,6 +168,6 @@ def drive_loss(output, reference: Tensor, lam: float, alpha: float = 1000.0, bet
     total = coverage_coarse + lam * coverage_fine + alpha * control + beta * shape
     terms = {"coverage_coarse": coverage_coarse, "coverage_fine": coverage_fine, "control": control, "shape": shape}
     if precision > 0:
-        terms["near_surface"] = near_surface_distance(output.completion, reference, cap).mean() * SURFACE_SCALE
-        total = total + precision * terms["near_surface"]
+        terms["near_reference"] = near_reference_distance(output.completion, reference, cap).mean() * SURFACE_SCALE
+        total = total + precision * terms["near_reference"]
     return {"total": total, **terms}

@@ -65,8 +65,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--drive-weight", type=float, default=1.0,
                         help="weight of the drive's batches in the loss (default 1)")
     parser.add_argument("--drive-precision", type=float, default=0.0,
-                        help="weight of the drive's precision term: each output point's distance to the vehicle's "
-                        "aggregate, capped at 0.03 (normalised) so points where the aggregate saw nothing feel no "
+                        help="weight of the drive's precision term within the drive's loss (so times --drive-weight "
+                        "in the total): each output point's distance to the vehicle's aggregate, capped at "
+                        "0.03 (normalised; losses.NEAR_REFERENCE) so points where the aggregate saw nothing feel no "
                         "pull, x100 (default 0: coverage only)")
     parser.add_argument("--gt-points", type=int, default=None,
                         help="points sampled on each ground-truth surface (default: the model's N_o); denser targets "

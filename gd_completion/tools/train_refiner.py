@@ -65,7 +65,8 @@ def drive_settings(values: Any, path: Path) -> DriveSettings:
     except (TypeError, ValueError) as exc:
         raise DataFormatError(f"{path}: drive: {exc}") from exc
     if drive.ground_band:
-        raise DataFormatError(f"{path}: drive: ground_band shapes completion references; a refiner learns boxes")
+        raise DataFormatError(f"{path}: drive: ground_band applies to completion training only; leave it out of a "
+                              "refiner recipe")
     return drive
 
 
