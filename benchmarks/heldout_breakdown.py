@@ -45,12 +45,15 @@ def off_surface_regions(points: np.ndarray, partial: np.ndarray, distance: np.nd
     """Shares of points beyond NEAR_SURFACE on the unseen and seen sides and in the lowest `band` of the box."""
     off = distance > NEAR_SURFACE
     seen_sign = np.sign(np.median(partial[..., 1], axis=1))[:, None]
-    unseen = points[..., 1] * seen_sign < 0
-    floor = (-0.5 * sizes[:, 2] / sizes[:, 0])[:, None]   # the box's bottom in the normalised frame
+    unseen = points[..., 1] * np.where(seen_sign == 0, 1.0, seen_sign) < 0   # a scan centred on y = 0: its left seen
+    floor = (-0.5 * sizes[:, 2] / sizes[:, 0])[:, None]   # the (exact) box's bottom in the normalised frame
     low = points[..., 2] < floor + band
-    return (f"off the surface: unseen side {off[unseen].mean():.3f} ({unseen.mean():.2f} of the points), seen side "
-            f"{off[~unseen].mean():.3f}, lowest {band:g} of the box {off[low].mean():.3f} ({low.mean():.3f} of the "
-            "points)")
+
+    def share(where: np.ndarray) -> float:
+        return float(off[where].mean()) if where.any() else float("nan")
+
+    return (f"off the surface: unseen side {share(unseen):.3f} ({unseen.mean():.2f} of the points), seen side "
+            f"{share(~unseen):.3f}, lowest {band:g} of the box {share(low):.3f} ({low.mean():.3f} of the points)")
 
 
 def loose_row(model: GGDNet, heldout: HeldOut, end: float, side: float) -> str:
