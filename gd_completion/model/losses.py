@@ -39,8 +39,10 @@ def _squared_to(a: Tensor, b: Tensor, nearest: Tensor) -> Tensor:
     return (a - gather_points(b, nearest)).pow(2).sum(-1)
 
 
-def _unsquared_mean(squared: Tensor) -> Tensor:
-    return (squared + 1e-12).sqrt().mean(1)
+def _unsquared_mean(squared: Tensor, cap: float | None = None) -> Tensor:
+    """(B,): mean over the points of the distances whose squares are `squared` (B, N), each capped at `cap` if given."""
+    distance = (squared + 1e-12).sqrt()
+    return (distance if cap is None else distance.clamp(max=cap)).mean(1)
 
 
 def surface_distance(points: Tensor, gt: Tensor) -> Tensor:
@@ -151,7 +153,7 @@ def near_reference_distance(points: Tensor, reference: Tensor, cap: float) -> Te
     """(B,): mean over `points` (B, N, 3) of the unsquared distance to the nearest point of `reference`, capped at
     `cap`: a point within `cap` of a partial reference is pulled onto it, one farther away (where the reference may
     simply not have been seen) costs a constant and feels no pull."""
-    return (_squared_to(points, reference, nearest_index(points, reference)) + 1e-12).sqrt().clamp(max=cap).mean(1)
+    return _unsquared_mean(_squared_to(points, reference, nearest_index(points, reference)), cap)
 
 
 def drive_loss(output, reference: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5,
