@@ -89,7 +89,7 @@ def main() -> None:
     merges: dict[str, Merge] = {
         "network alone": lambda c, p, r, s, b: c,
         "mirror + template": lambda c, p, r, s, b: prior_outputs(with_aside(p, b), s, len(c))["mirror_template"],
-        "shipped": lambda c, p, r, s, b: merge_with_pool(c, p, aside=b).points}
+        "shipped": lambda c, p, r, s, b: merge_with_pool(c, p, aside=b, size=s).points}
     for spec in args.variants:
         kind, *values = spec.split(":")
         merges[spec] = fed_only if kind == "fed" else outliers_dropped(int(values[0]), float(values[1])) \

@@ -123,12 +123,13 @@ def main() -> None:
         network = [nearest_sq(o[2], c).mean() * 1e3 for o, c in zip(observations, points)]
         h_points = spaced(spec, h_raw, h_graph)[0]
         for network_weight, mirror_weight in weights:
-            merged = [merge_with_pool(c, p, aside=b, network_weight=network_weight, mirror_weight=mirror_weight).points
-                      for c, (p, _, _, b) in zip(points, observations)]
+            merged = [merge_with_pool(c, p, aside=b, network_weight=network_weight, mirror_weight=mirror_weight,
+                                      size=s).points for c, (p, s, _, b) in zip(points, observations)]
             published = [nearest_sq(o[2], m).mean() * 1e3 for o, m in zip(observations, merged)]
             fidelity = [nearest_sq(o[0], m).mean() * 1e3 for o, m in zip(observations, merged)]
-            h_out = np.stack([merge_with_pool(c, p, network_weight=network_weight, mirror_weight=mirror_weight).points
-                              for c, p in zip(h_points, heldout.partial)])
+            h_sizes = heldout.sizes if heldout.sizes is not None else [None] * len(h_points)
+            h_out = np.stack([merge_with_pool(c, p, network_weight=network_weight, mirror_weight=mirror_weight,
+                                              size=s).points for c, p, s in zip(h_points, heldout.partial, h_sizes)])
             row = _chamfer_row(h_out, heldout.complete)[0]
             (distance,) = distances_to_meshes([h_out], [v for v, _ in heldout.meshes], [f for _, f in heldout.meshes])
             label = spec if len(weights) == 1 else f"{spec} @{network_weight:g}:{mirror_weight:g}"

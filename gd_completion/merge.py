@@ -5,7 +5,9 @@ points; a densely seen side is better described by the measurements themselves. 
 point of the vehicle (one per `POOL_VOXEL` voxel: a single frame's crop or a track's fused partial alike, and the
 points the crop kept aside, which the network is not fed: the ground band in the box's footprint, tyres and wheel
 arches, and the surround within the pool margin, the ends a loose box cuts off), adds
-their mirror image about the box's longitudinal plane (y -> -y) and the completion, and keeps N_o of the union by
+their mirror image about the vehicle's plane of symmetry (the box's longitudinal plane, y -> -y, moved across the
+box where a clearly seen side and the box's width place the vehicle elsewhere: `mirror_plane_offset`, for a
+detector's box that is off by decimetres) and the completion, and keeps N_o of the union by
 a weighted farthest point sampling (`kernels.fps_pruned` with weights; deterministic, starting at a measured point):
 a measured point is taken where nothing chosen lies within its distance, a mirrored point only
 1/sqrt(MIRROR_WEIGHT) times and a network point 1/sqrt(NETWORK_WEIGHT) times farther out. Measured points therefore
@@ -16,6 +18,7 @@ instead of the network, unweighted) is the "mirror + template" prior of the eval
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +33,18 @@ from gd_completion.sampling import voxel_first_indices
 POOL_VOXEL = 0.01
 MIRROR_WEIGHT = 0.5
 NETWORK_WEIGHT = 0.25
+# The mirror's plane (`mirror_plane_offset`): a box's plane is off by the box's error across the vehicle, so the
+# plane is moved by PLANE_SHARE of the offset that the seen side and the box's width give. SIDE_GAP: where the seen
+# side's 90th percentile lies against the box's side (normalised; the median over PandaSet-002's moving vehicles,
+# which the evaluation does not score); the side is read in the middle of the vehicle (|x| < SIDE_SPAN) at body
+# height, needs SIDE_MIN_POINTS points and SIDE_RATIO times the other side's; the move is capped at PLANE_LIMIT.
+# Chosen on PandaSet-002's full protocol (docs/MODEL.md, "Model v3.2", the mirror's plane).
+PLANE_SHARE = 1.0
+SIDE_GAP = -0.0154
+SIDE_SPAN = 0.3
+SIDE_MIN_POINTS = 20
+SIDE_RATIO = 3.0
+PLANE_LIMIT = 0.08
 
 
 @dataclass(frozen=True)
@@ -46,9 +61,34 @@ class Merged:
         return self.measured_row >= 0
 
 
-def mirrored(points: np.ndarray) -> np.ndarray:
-    """Points of the normalised box frame mirrored about its longitudinal vertical plane (y -> -y)."""
-    return np.asarray(points, np.float32) * np.array([1.0, -1.0, 1.0], np.float32)
+def mirrored(points: np.ndarray, offset: float = 0.0) -> np.ndarray:
+    """Points of the normalised box frame mirrored about the vertical plane y = `offset` along the box (y -> 2 offset
+    - y; the box's own longitudinal plane by default)."""
+    out = np.asarray(points, np.float32) * np.array([1.0, -1.0, 1.0], np.float32)
+    if offset:
+        out[:, 1] += np.float32(2.0 * offset)
+    return out
+
+
+def mirror_plane_offset(partial: np.ndarray, size: Sequence[float] | None, share: float = PLANE_SHARE) -> float:
+    """Where the vehicle's plane of symmetry lies across its box (y, normalised frame), times `share`: from the seen
+    side (the 90th percentile of its points' distance from the box's plane, in the middle of the vehicle at body
+    height) and the box's width (`size` = length, width, height), the side's gap `SIDE_GAP` removed. 0 when no side
+    is seen clearly (fewer than `SIDE_MIN_POINTS` points, or less than `SIDE_RATIO` times the other side's), without
+    a size, or with `share` 0; at most `PLANE_LIMIT` x `share`."""
+    if not share or size is None:
+        return 0.0
+    length, width, height = (float(v) for v in size)
+    p = np.asarray(partial, np.float32).reshape(-1, 3)
+    tall = height / length
+    body = (np.abs(p[:, 0]) < SIDE_SPAN) & (p[:, 2] > -0.3 * tall) & (p[:, 2] < 0.2 * tall)
+    y = p[body, 1]
+    left, right = y[y > 0], -y[y < 0]
+    sign, seen, other = (1.0, left, right) if len(left) >= len(right) else (-1.0, right, left)
+    if len(seen) < SIDE_MIN_POINTS or len(seen) < SIDE_RATIO * max(len(other), 1):
+        return 0.0
+    offset = sign * (float(np.percentile(seen, 90)) - width / length / 2 - SIDE_GAP)
+    return float(np.clip(offset, -PLANE_LIMIT, PLANE_LIMIT)) * share
 
 
 def check_weights(network_weight: float, mirror_weight: float) -> None:
@@ -58,16 +98,18 @@ def check_weights(network_weight: float, mirror_weight: float) -> None:
 
 
 def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None = None, *,
-                   network_weight: float = NETWORK_WEIGHT, mirror_weight: float = MIRROR_WEIGHT) -> Merged:
+                   network_weight: float = NETWORK_WEIGHT, mirror_weight: float = MIRROR_WEIGHT,
+                   mirror_offset: float = 0.0) -> Merged:
     """Weighted farthest point sampling (see the module; the measured points weigh 1) of the union of `measured`
-    (M, 3), its mirror image and `completion` (N_o, 3), all finite and in the normalised box frame, to `n` points
+    (M, 3), its mirror image about y = `mirror_offset` and `completion` (N_o, 3), all finite and in the normalised
+    box frame, to `n` points
     (default N_o). Pass a pool of the measured points (`merge_with_pool`) to bound the cost: about 1 ms for 2,000
     measured and 2,048 completion points on one core. When the union holds fewer than `n` distinct points, all of
     them are kept and the completion's (else the mirror's) repeated."""
     completion = np.asarray(completion, np.float32).reshape(-1, 3)
     measured = np.asarray(measured, np.float32).reshape(-1, 3)
     n = len(completion) if n is None else int(n)
-    union = np.ascontiguousarray(np.concatenate([measured, mirrored(measured), completion]))
+    union = np.ascontiguousarray(np.concatenate([measured, mirrored(measured, mirror_offset), completion]))
     if not 0 < n <= len(union):
         raise ValueError(f"cannot keep {n} of {len(union)} points")
     if not np.isfinite(union).all():
@@ -91,12 +133,16 @@ def merge_measured(completion: np.ndarray, measured: np.ndarray, n: int | None =
 
 def merge_with_pool(completion: np.ndarray, partial: np.ndarray, voxel: float = POOL_VOXEL,
                     aside: np.ndarray | None = None, *, network_weight: float = NETWORK_WEIGHT,
-                    mirror_weight: float = MIRROR_WEIGHT) -> Merged:
+                    mirror_weight: float = MIRROR_WEIGHT, size: Sequence[float] | None = None,
+                    plane_share: float = PLANE_SHARE) -> Merged:
     """`merge_measured` with one point per `voxel` voxel of a vehicle's measured `partial` (normalised; the first in
     its order: a track's fused partial lists the oldest frame first, so the pool changes little from frame to
     frame) and of the points its crop kept aside, `aside` (`preprocess.CroppedVehicle.aside`: the ground band and the
-    surround, which the network is not fed). `Merged.measured_row` indexes `partial` followed by `aside`."""
+    surround, which the network is not fed). With the box's `size`, the mirror's plane is moved by `plane_share` of
+    what the seen side gives (`mirror_plane_offset` of `partial`). `Merged.measured_row` indexes `partial` followed
+    by `aside`."""
     measured = with_aside(partial, aside)
     rows = voxel_first_indices(measured, voxel)
-    merged = merge_measured(completion, measured[rows], network_weight=network_weight, mirror_weight=mirror_weight)
+    merged = merge_measured(completion, measured[rows], network_weight=network_weight, mirror_weight=mirror_weight,
+                            mirror_offset=mirror_plane_offset(partial, size, plane_share))
     return Merged(merged.points, np.where(merged.is_measured, rows[np.maximum(merged.measured_row, 0)], -1))

@@ -314,7 +314,7 @@ class VehicleCompleter:
             completion = even_spacing(completion, graph=graph)
         if not merge:
             return completion, np.full(len(completion), -1, np.int64), frame
-        merged = merge_with_pool(completion, partial, aside=aside)
+        merged = merge_with_pool(completion, partial, aside=aside, size=size)
         return merged.points, merged.measured_row, frame
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],

@@ -5,7 +5,16 @@ import numpy as np
 import pytest
 
 from gd_completion.kernels import FPS_LEAF, _fps_cloud, _morton_order, fps, fps_pruned
-from gd_completion.merge import MIRROR_WEIGHT, POOL_VOXEL, merge_measured, merge_with_pool, mirrored
+from gd_completion.merge import (
+    MIRROR_WEIGHT,
+    PLANE_LIMIT,
+    POOL_VOXEL,
+    SIDE_GAP,
+    merge_measured,
+    merge_with_pool,
+    mirror_plane_offset,
+    mirrored,
+)
 from gd_completion.sampling import resample_indices, voxel_first_indices
 
 
@@ -252,3 +261,57 @@ def test_the_pool_takes_the_ground_band_and_indexes_it_after_the_partial():
     kept = merged.measured_row[merged.is_measured & ~from_band]
     np.testing.assert_array_equal(merged.points[merged.is_measured & ~from_band], partial[kept])
     assert not (merge_with_pool(completion, partial).measured_row >= len(partial)).any()
+
+
+SIZE = (4.5, 1.8, 1.5)   # a car's box (m): width 0.4 and height 1/3 of the length
+
+
+def _side(offset: float, sign: float = 1.0, n: int = 400, seed: int = 0) -> np.ndarray:
+    """A vehicle's flat side panel seen by the sensor on the `sign` side, its plane of symmetry `offset` across the
+    box (normalised frame; the side lies SIDE_GAP off the box's side, as measured sides do)."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-0.45, 0.45, n)
+    z = rng.uniform(-0.08, 0.05, n)
+    y = offset + sign * (SIZE[1] / SIZE[0] / 2 + SIDE_GAP)
+    return np.stack([x, np.full(n, y), z], 1).astype(np.float32)
+
+
+@pytest.mark.parametrize(("offset", "sign"), [(0.03, 1.0), (-0.02, 1.0), (0.025, -1.0), (0.0, -1.0)])
+def test_the_mirror_plane_is_found_from_the_seen_side_and_the_width(offset, sign):
+    """A box off across the vehicle by `offset`: the seen side (either) and the box's width place the plane there;
+    `share` takes that part of it."""
+    side = _side(offset, sign)
+    assert mirror_plane_offset(side, SIZE, share=1.0) == pytest.approx(offset, abs=1e-5)
+    assert mirror_plane_offset(side, SIZE, share=0.5) == pytest.approx(offset / 2, abs=1e-5)
+
+
+def test_the_mirror_plane_stays_where_no_side_is_seen_clearly():
+    """Both sides seen alike, too few points, no box size or a share of 0: the box's own plane (0); a far move is
+    capped."""
+    both = np.concatenate([_side(0.03, 1.0), _side(0.03, -1.0, seed=1)])
+    assert mirror_plane_offset(both, SIZE, share=1.0) == 0.0
+    assert mirror_plane_offset(_side(0.03, n=10), SIZE, share=1.0) == 0.0
+    assert mirror_plane_offset(_side(0.03), None, share=1.0) == 0.0
+    assert mirror_plane_offset(_side(0.03), SIZE, share=0.0) == 0.0
+    rear = _side(0.03) * np.array([1.0, 1.0, 1.0], np.float32)
+    rear[:, 0] = 0.48   # the rear face's edge only: nothing in the middle of the vehicle
+    assert mirror_plane_offset(rear, SIZE, share=1.0) == 0.0
+    assert mirror_plane_offset(_side(0.2), SIZE, share=1.0) == pytest.approx(PLANE_LIMIT)
+
+
+def test_the_merge_mirrors_about_the_plane_the_side_gives():
+    """With the box's size the pooled mirror image lies about y = the found offset, not about the box's plane."""
+    side = _side(0.04)
+    completion = np.full((8, 3), 2.0, np.float32)
+    offset = mirror_plane_offset(side, SIZE)
+    assert offset != 0.0
+    merged = merge_measured(completion, side, 2 * len(side) + 1, mirror_offset=offset)   # every distinct point
+    mirror = ~merged.is_measured & (merged.points[:, 1] < 0)
+    assert mirror.sum() == len(side)
+    np.testing.assert_allclose(merged.points[mirror, 1], 2 * offset - side[0, 1], atol=1e-5)
+    plain = merge_measured(completion, side, 2 * len(side) + 1)
+    np.testing.assert_allclose(plain.points[~plain.is_measured & (plain.points[:, 1] < 0), 1], -side[0, 1], atol=1e-6)
+    pool = side[voxel_first_indices(side, POOL_VOXEL)]
+    np.testing.assert_array_equal(merge_with_pool(completion, side, size=SIZE).points,
+                                  merge_measured(completion, pool, mirror_offset=offset).points)
+    np.testing.assert_array_equal(mirrored(side, 0.05)[:, 1], np.float32(0.1) - side[:, 1])
