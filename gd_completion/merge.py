@@ -14,7 +14,7 @@ a measured point is taken where nothing chosen lies within its distance, a mirro
 replace network points wherever the vehicle was seen, at half the network points' spacing (four times their density
 per area), so a densely seen vehicle keeps its measurements and fidelity does not worsen with density; the network
 fills what is unseen and the spacing stays even within each kind. The box-only analogue (mirror and a template
-instead of the network, unweighted) is the "mirror + template" prior of the evaluation.
+instead of the network, unweighted, about the box's own plane) is the "mirror + template" prior of the evaluation.
 """
 from __future__ import annotations
 
@@ -37,11 +37,13 @@ NETWORK_WEIGHT = 0.25
 # plane is moved by PLANE_SHARE of the offset that the seen side and the box's width give. SIDE_GAP: where the seen
 # side's 90th percentile lies against the box's side (normalised; the median over PandaSet-002's moving vehicles,
 # which the evaluation does not score); the side is read in the middle of the vehicle (|x| < SIDE_SPAN) at body
-# height, needs SIDE_MIN_POINTS points and SIDE_RATIO times the other side's; the move is capped at PLANE_LIMIT.
+# height (SIDE_BAND), needs SIDE_MIN_POINTS points and SIDE_RATIO times the other side's; the move is capped at
+# PLANE_LIMIT.
 # Chosen on PandaSet-002's full protocol (docs/MODEL.md, "Model v3.2", the mirror's plane).
 PLANE_SHARE = 1.0
 SIDE_GAP = -0.0154
 SIDE_SPAN = 0.3
+SIDE_BAND = (-0.3, 0.2)   # body height: from 0.3 below to 0.2 above the box's centre, in box heights
 SIDE_MIN_POINTS = 20
 SIDE_RATIO = 3.0
 PLANE_LIMIT = 0.08
@@ -70,18 +72,27 @@ def mirrored(points: np.ndarray, offset: float = 0.0) -> np.ndarray:
     return out
 
 
+def check_plane_share(share: float) -> float:
+    """`share` as a float; ValueError unless it is in [0, 1]."""
+    share = float(share)
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"mirror plane share {share} must be in [0, 1]")
+    return share
+
+
 def mirror_plane_offset(partial: np.ndarray, size: Sequence[float] | None, share: float = PLANE_SHARE) -> float:
     """Where the vehicle's plane of symmetry lies across its box (y, normalised frame), times `share`: from the seen
     side (the 90th percentile of its points' distance from the box's plane, in the middle of the vehicle at body
     height) and the box's width (`size` = length, width, height), the side's gap `SIDE_GAP` removed. 0 when no side
     is seen clearly (fewer than `SIDE_MIN_POINTS` points, or less than `SIDE_RATIO` times the other side's), without
-    a size, or with `share` 0; at most `PLANE_LIMIT` x `share`."""
-    if not share or size is None:
+    a finite positive size, or with `share` 0; at most `PLANE_LIMIT` x `share`."""
+    dims = np.asarray(size if size is not None else (), np.float64).ravel()
+    if not share or len(dims) != 3 or not (np.isfinite(dims).all() and (dims > 0).all()):
         return 0.0
-    length, width, height = (float(v) for v in size)
+    length, width, height = dims
     p = np.asarray(partial, np.float32).reshape(-1, 3)
-    tall = height / length
-    body = (np.abs(p[:, 0]) < SIDE_SPAN) & (p[:, 2] > -0.3 * tall) & (p[:, 2] < 0.2 * tall)
+    low, high = SIDE_BAND[0] * height / length, SIDE_BAND[1] * height / length
+    body = (np.abs(p[:, 0]) < SIDE_SPAN) & (p[:, 2] > low) & (p[:, 2] < high)
     y = p[body, 1]
     left, right = y[y > 0], -y[y < 0]
     sign, seen, other = (1.0, left, right) if len(left) >= len(right) else (-1.0, right, left)

@@ -22,7 +22,7 @@ from gd_completion.fusion import TrackFusion
 from gd_completion.geometry import Box3D, box_problem, denormalize, finite_mask, normalize
 from gd_completion.labels import DEFAULT_LABELS, LABEL_IDS
 from gd_completion.limits import FrameLimits, screen_boxes
-from gd_completion.merge import merge_with_pool
+from gd_completion.merge import PLANE_SHARE, check_plane_share, merge_with_pool
 from gd_completion.model.box_refiner import box_from_frame
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 from gd_completion.model.network import GGDNet, box_shape
@@ -136,6 +136,7 @@ class VehicleCompleter:
         fusion: TrackFusion | None = None,
         publish_fused_points: bool = False,
         measured_merge: bool = True,
+        mirror_plane: float = PLANE_SHARE,
         even_spacing: bool = True,
         pool_margin: float = POOL_MARGIN,
         track_ids: str = "message",
@@ -151,6 +152,7 @@ class VehicleCompleter:
         self.fusion = fusion
         self.publish_fused_points = bool(publish_fused_points)
         self.measured_merge = bool(measured_merge)
+        self.mirror_plane = check_plane_share(mirror_plane)   # share of the seen side's plane offset (`merge`)
         self.even_spacing = bool(even_spacing)
         self.pool_margin = check_pool_margin(pool_margin)   # metres: points kept aside for the merge (`crop_vehicles`)
         if track_ids not in TRACK_ID_MODES:
@@ -195,7 +197,8 @@ class VehicleCompleter:
             min_points=settings.min_points or None,
             crop_margin=settings.crop_margin if settings.crop_margin >= 0 else None, limits=settings.limits,
             labels=settings.labels, include_input_points=settings.include_input_points,
-            measured_merge=settings.measured_merge, even_spacing=settings.even_spacing,
+            measured_merge=settings.measured_merge, mirror_plane=settings.mirror_plane,
+            even_spacing=settings.even_spacing,
             pool_margin=settings.pool_margin, track_ids=settings.track_ids,
             association=settings.association, reuse=settings.reuse,
             fusion=TrackFusion(settings.fusion) if settings.track_fusion else None,
@@ -314,7 +317,7 @@ class VehicleCompleter:
             completion = even_spacing(completion, graph=graph)
         if not merge:
             return completion, np.full(len(completion), -1, np.int64), frame
-        merged = merge_with_pool(completion, partial, aside=aside, size=size)
+        merged = merge_with_pool(completion, partial, aside=aside, size=size, plane_share=self.mirror_plane)
         return merged.points, merged.measured_row, frame
 
     def complete_frame(self, points: np.ndarray, boxes: Sequence[Box3D],

@@ -20,6 +20,7 @@ from gd_completion.errors import BoxError, GDCompletionError
 from gd_completion.fusion import FusionLimits
 from gd_completion.labels import DEFAULT_LABELS, LABEL_IDS
 from gd_completion.limits import FrameLimits
+from gd_completion.merge import PLANE_SHARE
 from gd_completion.preprocess import POOL_MARGIN
 from gd_completion.registration import AlignSettings
 from gd_completion.reuse import ReuseSettings
@@ -103,6 +104,11 @@ SETTINGS: dict[str, Setting] = {
                                     "per 1 % voxel; a track's: its fused partial) and their mirror image, measured "
                                     "points first (they replace network points wherever the vehicle was seen).",
                               live=True),
+    "mirror_plane": Setting(PLANE_SHARE, "Share (0-1) of the offset across the box at which a clearly seen side "
+                                         "and the box's width place the vehicle's plane of symmetry, by which the "
+                                         "measured merge moves the plane it mirrors the measured points about (a "
+                                         "detector's box is off by decimetres); 0 = the box's own plane.", 0.0, 1.0,
+                            live=True),
     "even_spacing": Setting(True, "Move the network's points along their own surface until their spacing is even "
                                   "(5 pushes away from the nearest points within the local plane, then 30 % of the "
                                   "way onto it), before the merge; false: the network's points are not moved.",
@@ -199,6 +205,7 @@ class CompletionSettings:
     transform_wait: float
     include_input_points: bool
     measured_merge: bool
+    mirror_plane: float
     even_spacing: bool
     limits: FrameLimits
     track_fusion: bool
@@ -247,7 +254,8 @@ class CompletionSettings:
                    sync_tolerance=float(v["sync_tolerance"]), use_tf=bool(v["use_tf"]),
                    transform_tolerance=float(v["transform_tolerance"]), transform_wait=float(v["transform_wait"]),
                    include_input_points=bool(v["include_input_points"]),
-                   measured_merge=bool(v["measured_merge"]), even_spacing=bool(v["even_spacing"]),
+                   measured_merge=bool(v["measured_merge"]), mirror_plane=float(v["mirror_plane"]),
+                   even_spacing=bool(v["even_spacing"]),
                    limits=limits, track_fusion=bool(v["track_fusion"]),
                    publish_fused_points=bool(v["publish_fused_points"]), fusion=fusion, track_ids=str(v["track_ids"]),
                    association=AssociationSettings(max_distance=float(v["association_max_distance"])), reuse=reuse)

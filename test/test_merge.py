@@ -10,6 +10,7 @@ from gd_completion.merge import (
     PLANE_LIMIT,
     POOL_VOXEL,
     SIDE_GAP,
+    check_plane_share,
     merge_measured,
     merge_with_pool,
     mirror_plane_offset,
@@ -293,10 +294,25 @@ def test_the_mirror_plane_stays_where_no_side_is_seen_clearly():
     assert mirror_plane_offset(_side(0.03, n=10), SIZE, share=1.0) == 0.0
     assert mirror_plane_offset(_side(0.03), None, share=1.0) == 0.0
     assert mirror_plane_offset(_side(0.03), SIZE, share=0.0) == 0.0
-    rear = _side(0.03) * np.array([1.0, 1.0, 1.0], np.float32)
+    rear = _side(0.03)
     rear[:, 0] = 0.48   # the rear face's edge only: nothing in the middle of the vehicle
     assert mirror_plane_offset(rear, SIZE, share=1.0) == 0.0
     assert mirror_plane_offset(_side(0.2), SIZE, share=1.0) == pytest.approx(PLANE_LIMIT)
+    for size in ((0.0, 1.8, 1.5), (4.5, float("nan"), 1.5), (4.5, 1.8), (-4.5, 1.8, 1.5)):
+        assert mirror_plane_offset(_side(0.03), size, share=1.0) == 0.0
+    assert check_plane_share(0.5) == 0.5
+    with pytest.raises(ValueError, match="mirror plane share"):
+        check_plane_share(1.5)
+
+
+def test_the_mirror_plane_reads_the_side_at_body_height_only():
+    """Points above the body (a roof rack, a mirror's top) or below it (the sills, the road) farther out than the
+    side do not move the plane: only body height counts (in box heights over the length)."""
+    side = _side(0.02)
+    rng = np.random.default_rng(5)
+    outliers = np.stack([rng.uniform(-0.25, 0.25, 300), np.full(300, 0.3), rng.choice([-0.16, 0.1], 300)], 1)
+    cloud = np.concatenate([side, outliers.astype(np.float32)])
+    assert mirror_plane_offset(cloud, SIZE, share=1.0) == pytest.approx(0.02, abs=1e-5)
 
 
 def test_the_merge_mirrors_about_the_plane_the_side_gives():

@@ -151,7 +151,8 @@ def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
     batch = _resampled(partials, model.config.num_input)[0]
     generated, raw, graph = network_forward(model, batch, sizes, max_batch)
     completion = even_spacing(raw, spacing, graph=graph) if spacing is not None else raw.copy()
+    boxes = np.asarray(sizes, np.float64).reshape(-1, 3) if sizes is not None else None
     merged = [merge_with_pool(c, p, aside=None if asides is None else asides[i],
-                              size=None if sizes is None else np.asarray(sizes, np.float64)[i]).points
+                              size=None if boxes is None else boxes[i]).points
               for i, (p, c) in enumerate(zip(partials, completion))]
     return NetworkOutputs(generated, raw, completion, np.stack(merged) if merged else completion.copy())

@@ -224,6 +224,7 @@ class CompleterNode(Node):
         self.completer.include_input_points = s.include_input_points
         self.completer.measured_merge = s.measured_merge
         self.completer.even_spacing = s.even_spacing
+        self.completer.mirror_plane = s.mirror_plane
         self.completer.pool_margin = s.pool_margin
         self.completer.limits = s.limits
         self._classes = s.classes

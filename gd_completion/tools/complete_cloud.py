@@ -23,7 +23,7 @@ output that exists already (without --overwrite) or cannot be written."""
 
 # The settings that make sense for one cloud (no tracks, no frame budget).
 CLOUD_SETTINGS = ("model_path", "device", "num_threads", "min_points", "crop_margin", "pool_margin", "labels",
-                  "include_input_points", "measured_merge", "even_spacing", "max_points_per_vehicle")
+                  "include_input_points", "measured_merge", "mirror_plane", "even_spacing", "max_points_per_vehicle")
 
 
 def _run(args: argparse.Namespace) -> int:
