@@ -319,8 +319,8 @@ def test_the_merge_mirrors_about_the_plane_the_side_gives():
     """With the box's size the pooled mirror image lies about y = the found offset, not about the box's plane."""
     side = _side(0.04)
     completion = np.full((8, 3), 2.0, np.float32)
-    offset = mirror_plane_offset(side, SIZE)
-    assert offset != 0.0
+    offset = mirror_plane_offset(side, SIZE, share=1.0)
+    assert offset != 0.0 and mirror_plane_offset(side, SIZE) == 0.0   # off by default (PLANE_SHARE)
     merged = merge_measured(completion, side, 2 * len(side) + 1, mirror_offset=offset)   # every distinct point
     mirror = ~merged.is_measured & (merged.points[:, 1] < 0)
     assert mirror.sum() == len(side)
@@ -328,6 +328,6 @@ def test_the_merge_mirrors_about_the_plane_the_side_gives():
     plain = merge_measured(completion, side, 2 * len(side) + 1)
     np.testing.assert_allclose(plain.points[~plain.is_measured & (plain.points[:, 1] < 0), 1], -side[0, 1], atol=1e-6)
     pool = side[voxel_first_indices(side, POOL_VOXEL)]
-    np.testing.assert_array_equal(merge_with_pool(completion, side, size=SIZE).points,
+    np.testing.assert_array_equal(merge_with_pool(completion, side, size=SIZE, plane_share=1.0).points,
                                   merge_measured(completion, pool, mirror_offset=offset).points)
     np.testing.assert_array_equal(mirrored(side, 0.05)[:, 1], np.float32(0.1) - side[:, 1])
