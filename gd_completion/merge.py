@@ -5,9 +5,9 @@ points; a densely seen side is better described by the measurements themselves. 
 point of the vehicle (one per `POOL_VOXEL` voxel: a single frame's crop or a track's fused partial alike, and the
 points the crop kept aside, which the network is not fed: the ground band in the box's footprint, tyres and wheel
 arches, and the surround within the pool margin, the ends a loose box cuts off), adds
-their mirror image about the box's longitudinal plane (y -> -y; optionally moved across the box to where a
-clearly seen side and the box's width place the vehicle, `mirror_plane_offset`, for a detector's box that is off
-by decimetres) and the completion, and keeps N_o of the union by
+their mirror image about the box's longitudinal plane (y -> -y; moved across the box to where a clearly seen
+side and the box's width place the vehicle, `mirror_plane_offset`, where the box is off by more than 2 % of the
+length, as a detector's box often is) and the completion, and keeps N_o of the union by
 a weighted farthest point sampling (`kernels.fps_pruned` with weights; deterministic, starting at a measured point):
 a measured point is taken where nothing chosen lies within its distance, a mirrored point only
 1/sqrt(MIRROR_WEIGHT) times and a network point 1/sqrt(NETWORK_WEIGHT) times farther out. Measured points therefore
@@ -34,14 +34,16 @@ POOL_VOXEL = 0.01
 MIRROR_WEIGHT = 0.5
 NETWORK_WEIGHT = 0.25
 # The mirror's plane (`mirror_plane_offset`): a box's plane is off by the box's error across the vehicle, so the
-# plane can be moved by a share of the offset that the seen side and the box's width give: PLANE_SHARE, 0 by
-# default (1 helps a detector's boxes and costs boxes tighter than PandaSet's, such as the synthetic sets'; read at
-# call time). SIDE_GAP: where the seen side's 90th percentile lies against the box's side (normalised; the median
-# over PandaSet-002's moving vehicles, which the evaluation does not score); the side is read in the middle of the
+# plane is moved by a share of the offset that the seen side and the box's width give: PLANE_SHARE (1 by default;
+# read at call time), only where that offset is at least PLANE_MIN_MOVE (smaller ones are within the estimate's own
+# error, and are what a box tighter than PandaSet's annotations, such as the synthetic sets', gives).
+# SIDE_GAP: where the seen side's 90th percentile lies against the box's side (normalised; the median over
+# PandaSet-002's moving vehicles, which the evaluation does not score); the side is read in the middle of the
 # vehicle (|x| < SIDE_SPAN) at body height (SIDE_BAND), needs SIDE_MIN_POINTS points and SIDE_RATIO times the
 # other side's; the move is capped at PLANE_LIMIT. Measured on PandaSet-002 and the synthetic sets (docs/MODEL.md,
 # "Model v3.2", the mirror's plane).
-PLANE_SHARE = 0.0
+PLANE_SHARE = 1.0
+PLANE_MIN_MOVE = 0.02
 SIDE_GAP = -0.0154
 SIDE_SPAN = 0.3
 SIDE_BAND = (-0.3, 0.2)   # body height: from 0.3 below to 0.2 above the box's centre, in box heights
@@ -85,8 +87,9 @@ def mirror_plane_offset(partial: np.ndarray, size: Sequence[float] | None, share
     """Where the vehicle's plane of symmetry lies across its box (y, normalised frame), times `share`: from the seen
     side (the 90th percentile of its points' distance from the box's plane, in the middle of the vehicle at body
     height) and the box's width (`size` = length, width, height), the side's gap `SIDE_GAP` removed. 0 when no side
-    is seen clearly (fewer than `SIDE_MIN_POINTS` points, or less than `SIDE_RATIO` times the other side's), without
-    a finite positive size, or with `share` 0 (None: `PLANE_SHARE`); at most `PLANE_LIMIT` x `share`."""
+    is seen clearly (fewer than `SIDE_MIN_POINTS` points, or less than `SIDE_RATIO` times the other side's), when the
+    offset is under `PLANE_MIN_MOVE`, without a finite positive size, or with `share` 0 (None: `PLANE_SHARE`); at
+    most `PLANE_LIMIT` x `share`."""
     share = PLANE_SHARE if share is None else share
     dims = np.asarray(size if size is not None else (), np.float64).ravel()
     if not share or len(dims) != 3 or not (np.isfinite(dims).all() and (dims > 0).all()):
@@ -101,6 +104,8 @@ def mirror_plane_offset(partial: np.ndarray, size: Sequence[float] | None, share
     if len(seen) < SIDE_MIN_POINTS or len(seen) < SIDE_RATIO * max(len(other), 1):
         return 0.0
     offset = sign * (float(np.percentile(seen, 90)) - width / length / 2 - SIDE_GAP)
+    if abs(offset) < PLANE_MIN_MOVE:
+        return 0.0
     return float(np.clip(offset, -PLANE_LIMIT, PLANE_LIMIT)) * share
 
 

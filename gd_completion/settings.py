@@ -106,8 +106,9 @@ SETTINGS: dict[str, Setting] = {
                               live=True),
     "mirror_plane": Setting(PLANE_SHARE, "Share (0-1) of the offset across the box at which a clearly seen side "
                                          "and the box's width place the vehicle's plane of symmetry, by which the "
-                                         "measured merge moves the plane it mirrors the measured points about (a "
-                                         "detector's box is off by decimetres); 0 = the box's own plane.", 0.0, 1.0,
+                                         "measured merge moves the plane it mirrors the measured points about where "
+                                         "that offset is at least 2 % of the length (a detector's box is off by "
+                                         "decimetres); 0 = always the box's own plane.", 0.0, 1.0,
                             live=True),
     "even_spacing": Setting(True, "Move the network's points along their own surface until their spacing is even "
                                   "(5 pushes away from the nearest points within the local plane, then 30 % of the "

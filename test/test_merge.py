@@ -8,6 +8,7 @@ from gd_completion.kernels import FPS_LEAF, _fps_cloud, _morton_order, fps, fps_
 from gd_completion.merge import (
     MIRROR_WEIGHT,
     PLANE_LIMIT,
+    PLANE_MIN_MOVE,
     POOL_VOXEL,
     SIDE_GAP,
     check_plane_share,
@@ -277,13 +278,22 @@ def _side(offset: float, sign: float = 1.0, n: int = 400, seed: int = 0) -> np.n
     return np.stack([x, np.full(n, y), z], 1).astype(np.float32)
 
 
-@pytest.mark.parametrize(("offset", "sign"), [(0.03, 1.0), (-0.02, 1.0), (0.025, -1.0), (0.0, -1.0)])
+@pytest.mark.parametrize(("offset", "sign"), [(0.03, 1.0), (-0.025, 1.0), (0.035, -1.0), (-0.05, -1.0)])
 def test_the_mirror_plane_is_found_from_the_seen_side_and_the_width(offset, sign):
     """A box off across the vehicle by `offset`: the seen side (either) and the box's width place the plane there;
     `share` takes that part of it."""
     side = _side(offset, sign)
     assert mirror_plane_offset(side, SIZE, share=1.0) == pytest.approx(offset, abs=1e-5)
     assert mirror_plane_offset(side, SIZE, share=0.5) == pytest.approx(offset / 2, abs=1e-5)
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.012, -0.018])
+def test_the_mirror_plane_stays_for_a_move_within_the_estimates_error(offset):
+    """An offset under PLANE_MIN_MOVE (a tight box's, or the estimate's own error) leaves the box's plane; just
+    over it, the plane moves."""
+    assert mirror_plane_offset(_side(offset), SIZE, share=1.0) == 0.0
+    over = PLANE_MIN_MOVE + 0.002
+    assert mirror_plane_offset(_side(over), SIZE, share=1.0) == pytest.approx(over, abs=1e-5)
 
 
 def test_the_mirror_plane_stays_where_no_side_is_seen_clearly():
@@ -308,11 +318,11 @@ def test_the_mirror_plane_stays_where_no_side_is_seen_clearly():
 def test_the_mirror_plane_reads_the_side_at_body_height_only():
     """Points above the body (a roof rack, a mirror's top) or below it (the sills, the road) farther out than the
     side do not move the plane: only body height counts (in box heights over the length)."""
-    side = _side(0.02)
+    side = _side(0.03)
     rng = np.random.default_rng(5)
     outliers = np.stack([rng.uniform(-0.25, 0.25, 300), np.full(300, 0.3), rng.choice([-0.16, 0.1], 300)], 1)
     cloud = np.concatenate([side, outliers.astype(np.float32)])
-    assert mirror_plane_offset(cloud, SIZE, share=1.0) == pytest.approx(0.02, abs=1e-5)
+    assert mirror_plane_offset(cloud, SIZE, share=1.0) == pytest.approx(0.03, abs=1e-5)
 
 
 def test_the_merge_mirrors_about_the_plane_the_side_gives():
@@ -320,7 +330,7 @@ def test_the_merge_mirrors_about_the_plane_the_side_gives():
     side = _side(0.04)
     completion = np.full((8, 3), 2.0, np.float32)
     offset = mirror_plane_offset(side, SIZE, share=1.0)
-    assert offset != 0.0 and mirror_plane_offset(side, SIZE) == 0.0   # off by default (PLANE_SHARE)
+    assert offset != 0.0 and mirror_plane_offset(side, SIZE) == offset   # on by default (PLANE_SHARE 1)
     merged = merge_measured(completion, side, 2 * len(side) + 1, mirror_offset=offset)   # every distinct point
     mirror = ~merged.is_measured & (merged.points[:, 1] < 0)
     assert mirror.sum() == len(side)
