@@ -6,7 +6,7 @@ point of the vehicle (one per `POOL_VOXEL` voxel: a single frame's crop or a tra
 points the crop kept aside, which the network is not fed: the ground band in the box's footprint, tyres and wheel
 arches, and the surround within the pool margin, the ends a loose box cuts off), adds
 their mirror image about the box's longitudinal plane (y -> -y; moved across the box to where a clearly seen
-side and the box's width place the vehicle, `mirror_plane_offset`, where the box is off by more than 2 % of the
+side and the box's width place the vehicle, `mirror_plane_offset`, where the box is off by at least 2 % of the
 length, as a detector's box often is) and the completion, and keeps N_o of the union by
 a weighted farthest point sampling (`kernels.fps_pruned` with weights; deterministic, starting at a measured point):
 a measured point is taken where nothing chosen lies within its distance, a mirrored point only
