@@ -20,7 +20,7 @@ from gd_completion.errors import BoxError, GDCompletionError
 from gd_completion.fusion import FusionLimits
 from gd_completion.labels import DEFAULT_LABELS, LABEL_IDS
 from gd_completion.limits import FrameLimits
-from gd_completion.merge import PLANE_SHARE
+from gd_completion.merge import PLANE_MIN_MOVE, PLANE_SHARE
 from gd_completion.preprocess import POOL_MARGIN
 from gd_completion.registration import AlignSettings
 from gd_completion.reuse import ReuseSettings
@@ -107,8 +107,9 @@ SETTINGS: dict[str, Setting] = {
     "mirror_plane": Setting(PLANE_SHARE, "Share (0-1) of the offset across the box at which a clearly seen side "
                                          "and the box's width place the vehicle's plane of symmetry, by which the "
                                          "measured merge moves the plane it mirrors the measured points about where "
-                                         "that offset is at least 2 % of the length (a detector's box is off by "
-                                         "decimetres); 0 = always the box's own plane.", 0.0, 1.0,
+                                         f"that offset is at least {PLANE_MIN_MOVE * 100:g} % of the length (a "
+                                         "detector's box is off by decimetres); 0 = always the box's own plane.",
+                            0.0, 1.0,
                             live=True),
     "even_spacing": Setting(True, "Move the network's points along their own surface until their spacing is even "
                                   "(5 pushes away from the nearest points within the local plane, then 30 % of the "
