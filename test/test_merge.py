@@ -296,6 +296,16 @@ def test_the_mirror_plane_stays_for_a_move_within_the_estimates_error(offset):
     assert mirror_plane_offset(_side(over), SIZE, share=1.0) == pytest.approx(over, abs=1e-5)
 
 
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_the_mirror_plane_moves_from_its_minimum_move_on(sign):
+    """The boundary: an offset a hair under PLANE_MIN_MOVE keeps the box's plane, one a hair over moves it all the
+    way (no share of it is lost to the threshold), on either side."""
+    under, over = sign * (PLANE_MIN_MOVE - 2e-4), sign * (PLANE_MIN_MOVE + 2e-4)
+    assert mirror_plane_offset(_side(under), SIZE, share=1.0) == 0.0
+    assert mirror_plane_offset(_side(over), SIZE, share=1.0) == pytest.approx(over, abs=1e-5)
+    assert mirror_plane_offset(_side(over), SIZE, share=0.5) == pytest.approx(over / 2, abs=1e-5)
+
+
 def test_the_mirror_plane_stays_where_no_side_is_seen_clearly():
     """Both sides seen alike, too few points, no box size or a share of 0: the box's own plane (0); a far move is
     capped."""
