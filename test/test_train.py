@@ -282,6 +282,36 @@ def test_train_command_from_a_recipe(tmp_path):
     assert not any((tmp_path / d).exists() for d in "cdefg")
 
 
+def test_the_mesh_fraction_draws_that_share_of_the_shapes_from_the_meshes(tmp_path, shared_data):
+    """`mesh_fraction` (recipe key, `--mesh-fraction`): 1 draws every training and validation shape from the meshes
+    (keyed in the data's cache); outside [0, 1] or without meshes it is refused before any folder is made."""
+    from gd_completion.cli import main
+    from gd_completion.synth.dataset import load_dataset
+
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    (meshes / "taxi.ply").write_bytes((shared_data / "vehicle-meshes" / "basic_taxi.ply").read_bytes())
+    recipe = {"name": "tiny", "config": TINY.to_dict(), "samples": 6, "val_samples": 3, "epochs": 1,
+              "generation_epochs": 1, "batch_size": 3, "seed": 5, "meshes": str(meshes), "mesh_fraction": 1.0}
+    path = tmp_path / "recipe.json"
+    path.write_text(json.dumps(recipe))
+    out = tmp_path / "run"
+    assert main(["train", "--recipe", str(path), "--output", str(out), "--workers", "1"]) == 0
+    assert json.loads((out / "settings.json").read_text())["data"]["mesh_fraction"] == 1.0
+    kinds = [str(k) for f in sorted(out.glob("*.npz")) for k in load_dataset(f)["kind"]]
+    assert len(kinds) == 9 and all(k.startswith("mesh:") for k in kinds)
+    # the default keeps most shapes procedural (the same seed: only the fraction differs)
+    default = tmp_path / "default"
+    path.write_text(json.dumps({k: v for k, v in recipe.items() if k != "mesh_fraction"}))
+    assert main(["train", "--recipe", str(path), "--output", str(default), "--workers", "1"]) == 0
+    kinds = [str(k) for f in sorted(default.glob("*.npz")) for k in load_dataset(f)["kind"]]
+    assert len(kinds) == 9 and not all(k.startswith("mesh:") for k in kinds)
+    for bad in ({**recipe, "mesh_fraction": 1.5}, {k: v for k, v in recipe.items() if k != "meshes"}):
+        path.write_text(json.dumps(bad))
+        assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "bad")]) == 2
+    assert not (tmp_path / "bad").exists()
+
+
 def test_cosine_learning_rate_schedule():
     s = TrainSettings(epochs=5, lr=1e-3, lr_final=1e-5)
     lrs = [s.lr_at(e) for e in range(5)]

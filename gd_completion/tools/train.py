@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from gd_completion.atomic import atomic_path, make_folder
 from gd_completion.errors import DataFormatError
-from gd_completion.synth.cache import DatasetSpec, cached_dataset
+from gd_completion.synth.cache import MESH_FRACTION, DatasetSpec, cached_dataset
 from gd_completion.synth.dataset import (
     V1_SAMPLING,
     V2_SAMPLING,
@@ -38,6 +38,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=int, default=0, help="data and initialisation seed")
     parser.add_argument("--meshes", type=Path, default=None,
                         help="extra folder of vehicle meshes (.ply/.obj/.off/.glb) mixed with procedural shapes")
+    parser.add_argument("--mesh-fraction", type=float, default=MESH_FRACTION,
+                        help="with --meshes, the share 0-1 of the shapes drawn from the meshes, the rest procedural "
+                        f"(default {MESH_FRACTION})")
     parser.add_argument("--cache", type=Path, default=None,
                         help="folder for the generated data sets (.npz), named after everything that shapes them "
                         "(generator version, seed, sizes, beam patterns, the meshes' contents); a file made with "
@@ -100,9 +103,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 #: Options a recipe may set (argparse destinations), and their command-line defaults.
-RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "epochs", "generation_epochs", "lam", "alpha", "beta",
-               "gamma", "rho", "tangential", "drive", "drive_weight", "drive_precision", "gt_points", "batch_size",
-               "lr", "lr_final", "num_control", "config", "init_from", "init_skip", "sampling", "freeze")
+RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "mesh_fraction", "epochs", "generation_epochs", "lam",
+               "alpha", "beta", "gamma", "rho", "tangential", "drive", "drive_weight", "drive_precision", "gt_points",
+               "batch_size", "lr", "lr_final", "num_control", "config", "init_from", "init_skip", "sampling", "freeze")
 RECIPE_DEFAULTS: dict[str, Any] = {}
 _PATH_KEYS = ("meshes", "init_from")
 SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
@@ -205,7 +208,7 @@ def dataset_specs(args: argparse.Namespace, config: GGDConfig, options: SampleOp
                   ) -> tuple[DatasetSpec, DatasetSpec]:
     """The training and validation data sets of a run (`args`: this command's options after its recipe)."""
     spec = DatasetSpec(args.samples, args.seed, config.num_input, args.gt_points or config.num_output, args.meshes,
-                       options=options)
+                       mesh_fraction=args.mesh_fraction, options=options)
     return spec, dataclasses.replace(spec, n_samples=args.val_samples, seed=args.seed + VALIDATION_SEED_OFFSET)
 
 
@@ -234,6 +237,10 @@ def run(args: argparse.Namespace) -> int:
         if drive is None and getattr(args, name) != RECIPE_DEFAULTS[name]:
             raise DataFormatError(f"a {name.replace('_', ' ')} without a drive (--drive, recipe key drive) weighs "
                                   "nothing")
+    if not 0.0 <= args.mesh_fraction <= 1.0:
+        raise DataFormatError(f"mesh fraction {args.mesh_fraction} must be in [0, 1]")
+    if args.meshes is None and args.mesh_fraction != RECIPE_DEFAULTS["mesh_fraction"]:
+        raise DataFormatError("a mesh fraction without meshes (--meshes, recipe key meshes) draws nothing from them")
     config = load_config(args)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
