@@ -360,6 +360,7 @@ def test_the_repository_keeps_its_recipes():
     ("docs/evaluation/ablation/ggd_v3.pt", "ggd_v3b_noise", None),            # model v3
     ("docs/evaluation/ablation/ggd_v31.pt", "ggd_v3h_drive", None),           # model v3.1
     ("gd_completion/weights/ggd_vehicles.pt", "ggd_v3i_precision", None),     # shipped (model v3.2)
+    ("docs/evaluation/ablation/ggd_v3k_meshes.pt", "ggd_v3k_meshes", None),   # measured, kept, not shipped
 ])
 def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name, epochs_done):
     """README, model card and MODEL.md name the recipe of each kept checkpoint: its schedule, seed, loss weights and
