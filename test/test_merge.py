@@ -296,14 +296,15 @@ def test_the_mirror_plane_stays_for_a_move_within_the_estimates_error(offset):
     assert mirror_plane_offset(_side(over), SIZE, share=1.0) == pytest.approx(over, abs=1e-5)
 
 
+@pytest.mark.parametrize("side", [1.0, -1.0])
 @pytest.mark.parametrize("sign", [1.0, -1.0])
-def test_the_mirror_plane_moves_from_its_minimum_move_on(sign):
+def test_the_mirror_plane_moves_from_its_minimum_move_on(sign, side):
     """The boundary: an offset a hair under PLANE_MIN_MOVE keeps the box's plane, one a hair over moves it all the
-    way (no share of it is lost to the threshold), on either side."""
+    way (no share of it is lost to the threshold), either way across the box, whichever side was seen."""
     under, over = sign * (PLANE_MIN_MOVE - 2e-4), sign * (PLANE_MIN_MOVE + 2e-4)
-    assert mirror_plane_offset(_side(under), SIZE, share=1.0) == 0.0
-    assert mirror_plane_offset(_side(over), SIZE, share=1.0) == pytest.approx(over, abs=1e-5)
-    assert mirror_plane_offset(_side(over), SIZE, share=0.5) == pytest.approx(over / 2, abs=1e-5)
+    assert mirror_plane_offset(_side(under, side), SIZE, share=1.0) == 0.0
+    assert mirror_plane_offset(_side(over, side), SIZE, share=1.0) == pytest.approx(over, abs=1e-5)
+    assert mirror_plane_offset(_side(over, side), SIZE, share=0.5) == pytest.approx(over / 2, abs=1e-5)
 
 
 def test_the_mirror_plane_stays_where_no_side_is_seen_clearly():

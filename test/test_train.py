@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -300,15 +301,19 @@ def test_the_mesh_fraction_draws_that_share_of_the_shapes_from_the_meshes(tmp_pa
     assert json.loads((out / "settings.json").read_text())["data"]["mesh_fraction"] == 1.0
     kinds = [str(k) for f in sorted(out.glob("*.npz")) for k in load_dataset(f)["kind"]]
     assert len(kinds) == 9 and all(k.startswith("mesh:") for k in kinds)
-    # the default keeps most shapes procedural (the same seed: only the fraction differs)
+    # the default keeps some shapes procedural (the same seed: only the fraction differs)
     default = tmp_path / "default"
     path.write_text(json.dumps({k: v for k, v in recipe.items() if k != "mesh_fraction"}))
     assert main(["train", "--recipe", str(path), "--output", str(default), "--workers", "1"]) == 0
     kinds = [str(k) for f in sorted(default.glob("*.npz")) for k in load_dataset(f)["kind"]]
     assert len(kinds) == 9 and not all(k.startswith("mesh:") for k in kinds)
-    for bad in ({**recipe, "mesh_fraction": 1.5}, {k: v for k, v in recipe.items() if k != "meshes"}):
+    for bad in ({**recipe, "mesh_fraction": 1.5}, {**recipe, "mesh_fraction": "all"}, {**recipe, "mesh_fraction": True},
+                {k: v for k, v in recipe.items() if k != "meshes"}):
         path.write_text(json.dumps(bad))
         assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "bad")]) == 2
+    assert main(["train", "--output", str(tmp_path / "bad"), "--mesh-fraction", "0.5"]) == 2   # no meshes
+    path.write_text(json.dumps(recipe))   # the flag and the recipe key both: one source of truth
+    assert main(["train", "--recipe", str(path), "--output", str(tmp_path / "bad"), "--mesh-fraction", "0.5"]) == 2
     assert not (tmp_path / "bad").exists()
 
 
@@ -364,7 +369,9 @@ def test_the_repository_keeps_its_recipes():
 ])
 def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name, epochs_done):
     """README, model card and MODEL.md name the recipe of each kept checkpoint: its schedule, seed, loss weights and
-    configuration are the ones stored in the checkpoint (a run stopped early: its epochs done)."""
+    configuration are the ones stored in the checkpoint (a run stopped early: its epochs done); where the recipe's
+    notes quote the run's validation CD per epoch, the checkpoint's history holds those values (runs that differ only
+    in their data, such as the mesh share, told apart)."""
     recipe = json.loads((REPO / "recipes" / f"{recipe_name}.json").read_text())
     meta = read_checkpoint_metadata(REPO / weights)
     assert meta["epoch"] == (epochs_done or recipe["epochs"]) == len(meta["history"])
@@ -374,6 +381,10 @@ def test_kept_weights_come_from_the_recipe_that_claims_them(weights, recipe_name
             expected = recipe.get(key, {"gamma": 0.0, "drive_weight": 1.0, "drive_precision": 0.0}.get(key, []))
             assert meta["settings"][key] == (tuple(expected) if key == "freeze" else expected), key
     assert GGDConfig.from_dict(meta["config"]) == GGDConfig.from_dict(recipe["config"])
+    quoted = re.search(r"Validation:? CD\(P_o\) x1e3 ([0-9., ]+)", recipe.get("notes", ""))
+    if quoted:
+        values = [float(v) for v in quoted.group(1).strip(" ,.").split(",")]
+        assert [h["val_cd_completion"] for h in meta["history"]] == pytest.approx(values, abs=1e-3)   # as rounded
 
 
 def test_frozen_parameters_and_their_batch_norms_stay_as_they_are(tmp_path):

@@ -204,11 +204,23 @@ def tree_arity_for(n_points: int) -> list[int]:
     return arity
 
 
+def mesh_fraction(args: argparse.Namespace) -> float:
+    """The run's share of mesh shapes (`--mesh-fraction`, recipe key `mesh_fraction`) as a float; DataFormatError for
+    anything but a number in [0, 1], or for another share than the default without meshes."""
+    value = args.mesh_fraction
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
+        raise DataFormatError(f"mesh fraction {value!r} must be a number in [0, 1]")
+    if args.meshes is None and value != RECIPE_DEFAULTS["mesh_fraction"]:
+        raise DataFormatError("a mesh fraction without meshes (--meshes, recipe key meshes) draws nothing from them")
+    return float(value)
+
+
 def dataset_specs(args: argparse.Namespace, config: GGDConfig, options: SampleOptions
                   ) -> tuple[DatasetSpec, DatasetSpec]:
-    """The training and validation data sets of a run (`args`: this command's options after its recipe)."""
+    """The training and validation data sets of a run (`args`: this command's options after its recipe; the mesh
+    share checked, `mesh_fraction`)."""
     spec = DatasetSpec(args.samples, args.seed, config.num_input, args.gt_points or config.num_output, args.meshes,
-                       mesh_fraction=args.mesh_fraction, options=options)
+                       mesh_fraction=mesh_fraction(args), options=options)
     return spec, dataclasses.replace(spec, n_samples=args.val_samples, seed=args.seed + VALIDATION_SEED_OFFSET)
 
 
@@ -237,10 +249,6 @@ def run(args: argparse.Namespace) -> int:
         if drive is None and getattr(args, name) != RECIPE_DEFAULTS[name]:
             raise DataFormatError(f"a {name.replace('_', ' ')} without a drive (--drive, recipe key drive) weighs "
                                   "nothing")
-    if not 0.0 <= args.mesh_fraction <= 1.0:
-        raise DataFormatError(f"mesh fraction {args.mesh_fraction} must be in [0, 1]")
-    if args.meshes is None and args.mesh_fraction != RECIPE_DEFAULTS["mesh_fraction"]:
-        raise DataFormatError("a mesh fraction without meshes (--meshes, recipe key meshes) draws nothing from them")
     config = load_config(args)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
