@@ -40,19 +40,15 @@ from gd_completion.evaluation.baselines import published_outputs
 from gd_completion.evaluation.mesh_distance import NEAR_SURFACE, distances_to_meshes
 from gd_completion.evaluation.metrics import F_SCORE_THRESHOLD, nearest_sq_distance
 from gd_completion.evaluation.synthetic import (
-    EVAL_SEED,
     HeldOut,
     _chamfer_row,
-    _pair_meshes,
-    _pairs,
-    _sizes,
     load_heldout,
     load_heldout_meshes,
+    load_mesh_pairs,
 )
 from gd_completion.merge import merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.spacing import SpacingSettings, even_spacing
-from gd_completion.synth.dataset import build_dataset
 from gd_completion.synth.meshio import HELDOUT_MESHES, mesh_files
 
 SNAP_SAMPLES = 400_000   # points sampled on a true mesh to snap onto
@@ -66,16 +62,6 @@ def on_surface(points: np.ndarray, mesh: tuple[np.ndarray, np.ndarray], dense: i
     surface = trimesh.Trimesh(vertices=mesh[0], faces=mesh[1], process=False)
     sample = trimesh.sample.sample_surface(surface, dense, seed=0)[0].astype(np.float32)
     return sample[cKDTree(sample).query(points)[1]]
-
-
-def seen_mesh_pairs(n: int, mesh_dir: str) -> HeldOut:
-    """`n` pairs of the meshes the network was trained on (all but HELDOUT_MESHES), drawn as the held-out pairs are."""
-    seen = tuple(p.stem for p in mesh_files(mesh_dir) if p.stem not in HELDOUT_MESHES)
-    data = build_dataset(n, EVAL_SEED, meshes_dir=mesh_dir, mesh_fraction=1.0, only_meshes=seen,
-                         surface_resample=True, surface_mesh=True)
-    partial, complete = _pairs(data, "build_dataset")
-    return HeldOut(partial, complete, "seen meshes", np.asarray(data["surface_resample"], np.float32),
-                   _sizes(data, len(partial), "seen meshes"), _pair_meshes(data))
 
 
 def score(name: str, clouds: np.ndarray, heldout: HeldOut) -> None:
@@ -99,7 +85,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     heldout = {"heldout": lambda: load_heldout_meshes(args.heldout, args.meshes),
-               "seen-meshes": lambda: seen_mesh_pairs(args.heldout, args.meshes),
+               "seen-meshes": lambda: load_mesh_pairs(args.heldout, args.meshes, [   # the meshes trained on
+                   p.stem for p in mesh_files(args.meshes) if p.stem not in HELDOUT_MESHES], what="training"),
                "procedural": lambda: load_heldout(args.heldout)}[args.pairs]()
     assert heldout.meshes is not None and heldout.surface is not None and heldout.sizes is not None
     sizes = np.asarray(heldout.sizes, np.float64)

@@ -530,6 +530,21 @@ def test_heldout_mesh_set_draws_only_the_heldout_meshes(shared_data, tmp_path):
         load_heldout_meshes(1, tmp_path)
 
 
+def test_mesh_pairs_draw_only_the_named_meshes(shared_data):
+    """`load_mesh_pairs` (the held-out set's loader, any list of meshes): every pair from the named meshes, each
+    named; a name the folder lacks is an error that says what is missing."""
+    from gd_completion.errors import EvaluationError
+    from gd_completion.evaluation.synthetic import load_mesh_pairs
+
+    meshes = shared_data / "vehicle-meshes"
+    names = ("basic_basiccar", "public_bus")   # two of the training meshes
+    pairs = load_mesh_pairs(4, meshes, names, seed=7, what="training")
+    assert pairs.mesh_names is not None and len(pairs.mesh_names) == 4 and set(pairs.mesh_names) <= set(names)
+    assert pairs.partial.shape[0] == 4 and "2 training meshes of vehicle-meshes" in pairs.source
+    with pytest.raises(EvaluationError, match="1 of the 2 training meshes found"):
+        load_mesh_pairs(1, meshes, ("basic_basiccar", "no_such_mesh"), what="training")
+
+
 def test_evaluate_command_skips_missing_pandaset(tmp_path, capsys):
     import argparse
 

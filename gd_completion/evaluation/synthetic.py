@@ -133,24 +133,34 @@ def load_heldout(n_samples: int, *, seed: int = EVAL_SEED, mesh_dir: str | Path 
 def load_heldout_meshes(n_samples: int, mesh_dir: str | Path, *, seed: int = EVAL_SEED) -> HeldOut:
     """Pairs made from the held-out meshes only (`synth.meshio.HELDOUT_MESHES` of `mesh_dir`, never trained
     on): `build_dataset` with every shape drawn from those meshes."""
-    from gd_completion.synth.meshio import HELDOUT_MESHES, mesh_files
+    from gd_completion.synth.meshio import HELDOUT_MESHES
 
+    return load_mesh_pairs(n_samples, mesh_dir, HELDOUT_MESHES, seed=seed, what="held-out")
+
+
+def load_mesh_pairs(n_samples: int, mesh_dir: str | Path, names: Sequence[str], *, seed: int = EVAL_SEED,
+                    what: str = "named") -> HeldOut:
+    """Pairs made from the meshes `names` (file stems) of `mesh_dir` only, every one of them found there:
+    `build_dataset` with every shape drawn from those meshes (`what` names them in errors and in the source)."""
+    from gd_completion.synth.meshio import mesh_files
+
+    names = tuple(names)
     if not Path(mesh_dir).is_dir():
         raise EvaluationError(f"mesh folder {mesh_dir}: not a directory")
     try:   # counted by file name: build_dataset reads them (once)
-        found = sum(path.stem in HELDOUT_MESHES for path in mesh_files(mesh_dir))
-        if found != len(HELDOUT_MESHES):
-            raise EvaluationError(f"{mesh_dir}: {found} of the {len(HELDOUT_MESHES)} held-out meshes found")
+        found = sum(path.stem in names for path in mesh_files(mesh_dir))
+        if found != len(names):
+            raise EvaluationError(f"{mesh_dir}: {found} of the {len(names)} {what} meshes found")
         if n_samples < 1:
-            raise EvaluationError("no held-out mesh samples requested")
-        data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, mesh_fraction=1.0, only_meshes=HELDOUT_MESHES,
+            raise EvaluationError(f"no {what} mesh samples requested")
+        data = build_dataset(n_samples, seed, meshes_dir=mesh_dir, mesh_fraction=1.0, only_meshes=names,
                              surface_resample=True, surface_mesh=True)
     except DataFormatError as exc:   # an unreadable mesh
-        raise EvaluationError(f"held-out meshes: {exc}") from exc
+        raise EvaluationError(f"{what} meshes: {exc}") from exc
     partial, complete = _pairs(data, "build_dataset")
-    where = f"the {found} held-out meshes of {Path(mesh_dir).name} ({', '.join(HELDOUT_MESHES)}), seed {seed}"
-    names = [path.stem for path in mesh_files(mesh_dir) if path.stem in HELDOUT_MESHES]   # kind "mesh:<i>": the i-th
-    mesh_names = tuple(names[int(kind.removeprefix("mesh:"))] for kind in data["kind"])
+    where = f"the {found} {what} meshes of {Path(mesh_dir).name} ({', '.join(names)}), seed {seed}"
+    stems = [path.stem for path in mesh_files(mesh_dir) if path.stem in names]   # kind "mesh:<i>": the i-th
+    mesh_names = tuple(stems[int(kind.removeprefix("mesh:"))] for kind in data["kind"])
     return HeldOut(partial, complete, where, np.asarray(data["surface_resample"], np.float32),
                    _sizes(data, len(partial), where), _pair_meshes(data), mesh_names)
 
