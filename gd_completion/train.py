@@ -16,7 +16,16 @@ import torch
 from .errors import CheckpointError, DataFormatError, TrainingError
 from .model.checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .model.config import GGDConfig
-from .model.losses import CD_SCALE, SURFACE_SCALE, chamfer_and_surface, chamfer_l2, coverage, drive_loss, ggd_loss
+from .model.losses import (
+    CD_SCALE,
+    SURFACE_SCALE,
+    chamfer_and_surface,
+    chamfer_l2,
+    coverage,
+    drive_loss,
+    ggd_loss,
+    target_normals,
+)
 from .model.network import GGDNet, box_shape
 from .preprocess import Preprocessing
 
@@ -37,6 +46,7 @@ class TrainSettings:
     alpha: float = 1000.0
     beta: float = 0.5
     gamma: float = 0.0              # weight of the surface term (0: the paper's loss); see losses.ggd_loss
+    surface_planes: bool = False    # the surface term to the targets' tangent planes; see losses.plane_distance
     rho: float = 0.0                # weight of the repulsion term (0: the paper's loss); see losses.ggd_loss
     tangential: bool = False        # the repulsion term within each point's plane; see losses.repulsion
     drive_weight: float = 1.0       # weight of the real drive's batches (`train(drive=)`; losses.drive_loss)
@@ -262,6 +272,10 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         log.info("warm start from %s: %d tensors copied, fresh: %s", init_from,
                  len(model.state_dict()) - len(fresh), ", ".join(fresh) or "none")
     tr_x, tr_y, tr_s = _pairs(train_data, "training data", config)
+    tr_n = None
+    if settings.surface_planes and settings.gamma > 0:
+        tr_n = target_normals(tr_y)
+        log.info("fitted the tangent planes of %d x %d target points", tr_y.shape[0], tr_y.shape[1])
     va_x, va_y, va_s = _pairs(val_data, "validation data", config)
     drive_train, drive_val = (None, None) if drive is None else (
         _pairs(drive[0], "drive training data", config, 1), _pairs(drive[1], "drive validation data", config, 1))
@@ -308,7 +322,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
             x, gt = tr_x[idx].to(device), tr_y[idx].to(device)
             losses = ggd_loss(model(x, _rows(tr_s, idx, device)), gt, lam=lam, alpha=settings.alpha,
                               beta=settings.beta, gamma=settings.gamma, rho=settings.rho,
-                              tangential=settings.tangential)
+                              tangential=settings.tangential, normals=_rows(tr_n, idx, device))
             if drive_train is not None and drive_order is not None:
                 losses = _with_drive(losses, model, drive_train, drive_order, s, idx.numel(), lam, settings, device)
             optimizer.zero_grad(set_to_none=True)

@@ -1,12 +1,13 @@
 """GGD-Net losses: Chamfer (squared L2), smooth-L1 on control points, umbrella-Laplacian shape loss, and the
-optional surface term (unsquared distance of each output point to the nearest ground-truth point) and repulsion
-term (output points closer than `REPULSION_RADIUS` to their graph neighbours pushed apart)."""
+optional surface term (unsquared distance of each output point to the nearest ground-truth point, or to that point's
+tangent plane) and repulsion term (output points closer than `REPULSION_RADIUS` to their graph neighbours pushed
+apart)."""
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
-from .ops import flat_index, gather_points, nearest_index, neighbour_mean
+from .ops import flat_index, gather_points, knn_graph, nearest_index, neighbour_mean
 
 # Chamfer and Laplacian terms are reported in units of 1e-3 (normalised frame), as in the paper.
 CD_SCALE = 1000.0
@@ -16,6 +17,9 @@ NEAR_REFERENCE = 0.03   # `drive_loss`'s precision term: output points farther f
 # The repulsion term's radius (normalised frame): about the spacing of N_o = 2,048 points spread evenly over a car's
 # surface (about 2 square lengths: 1e-3 each, 0.03 apart).
 REPULSION_RADIUS = 0.03
+# Neighbours of each ground-truth point whose least-squares plane gives its normal (`target_normals`): with 4,096
+# points on a car (about 0.02 lengths apart) a patch about 0.04 lengths across.
+NORMAL_NEIGHBOURS = 16
 
 
 def nearest_indices(a: Tensor, b: Tensor, chunk_entries: int = 1 << 22) -> tuple[Tensor, Tensor]:
@@ -53,11 +57,36 @@ def surface_distance(points: Tensor, gt: Tensor) -> Tensor:
     return _unsquared_mean(_squared_to(points, gt, nearest_index(points, gt)))
 
 
-def chamfer_and_surface(points: Tensor, gt: Tensor) -> tuple[Tensor, Tensor]:
-    """(`chamfer_l2(points, gt)`, `surface_distance(points, gt)`), each (B,), from one nearest-neighbour search."""
+def target_normals(targets: Tensor, k: int = NORMAL_NEIGHBOURS, batch: int = 64) -> Tensor:
+    """(S, N, 3) unit normals (no gradient, unoriented) of ground-truth samples `targets` (S, N, 3): the least-squares
+    plane of each point and its `k` nearest, `batch` samples at a time."""
+    normals = torch.empty_like(targets)
+    for s in range(0, targets.shape[0], batch):
+        chunk = targets[s:s + batch]
+        offsets = chunk.unsqueeze(2) - gather_points(chunk, knn_graph(chunk, k))
+        normals[s:s + batch] = _plane_normals(offsets)
+    return normals
+
+
+def plane_distance(points: Tensor, gt: Tensor, normals: Tensor, nearest: Tensor | None = None) -> Tensor:
+    """Mean over `points` (B, N, 3) of the distance to the tangent plane (`normals` (B, M, 3)) of the nearest point
+    of `gt` (B, M, 3), (B,): `surface_distance` without the part along the surface. The nearest sample of a surface
+    sampled every 0.02 lengths lies about 0.01 lengths away from a point on the surface, so the point-to-point term
+    pulls a point within that distance onto the sample (sideways) more than onto the surface, and weakly, as a
+    squared term would; the plane's distance keeps the same pull down to the surface. `nearest`: the indices
+    (B, N) of the nearest `gt` point if already found."""
+    nearest = nearest_index(points, gt) if nearest is None else nearest
+    along = ((points - gather_points(gt, nearest)) * gather_points(normals, nearest)).sum(-1)
+    return _unsquared_mean(along.pow(2))
+
+
+def chamfer_and_surface(points: Tensor, gt: Tensor, normals: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """(`chamfer_l2(points, gt)`, `surface_distance(points, gt)`), each (B,), from one nearest-neighbour search; with
+    `normals` of `gt`, the second is `plane_distance(points, gt, normals)`."""
     ia, ib = nearest_indices(points, gt)
     to_gt = _squared_to(points, gt, ia)
-    return to_gt.mean(1) + _squared_to(gt, points, ib).mean(1), _unsquared_mean(to_gt)
+    to_surface = _unsquared_mean(to_gt) if normals is None else plane_distance(points, gt, normals, ia)
+    return to_gt.mean(1) + _squared_to(gt, points, ib).mean(1), to_surface
 
 
 def chamfer_l2(a: Tensor, b: Tensor) -> Tensor:
@@ -118,9 +147,10 @@ def deformation_terms(output) -> tuple[Tensor, Tensor]:
 
 
 def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float = 0.5, gamma: float = 0.0,
-             rho: float = 0.0, tangential: bool = False) -> dict[str, Tensor]:
+             rho: float = 0.0, tangential: bool = False, normals: Tensor | None = None) -> dict[str, Tensor]:
     """L = 1000 (CD(P_s, GT) + lam CD(P_o, GT)) + alpha smoothL1(P_c', P_c) + beta 1000 L_shape
-    [+ gamma 100 surface(P_o, GT) when gamma > 0, with lam > 0: `surface_distance`; a deviation from the paper]
+    [+ gamma 100 surface(P_o, GT) when gamma > 0, with lam > 0: `surface_distance`, or `plane_distance` given the
+    ground truth's `normals` (`target_normals`); a deviation from the paper]
     [+ rho 1000 repulsion(P_o) on the kNN graph of P_g when rho > 0: `repulsion`, within each point's plane when
     `tangential`; a deviation from the paper].
 
@@ -128,7 +158,7 @@ def ggd_loss(output, gt: Tensor, lam: float, alpha: float = 1000.0, beta: float 
     """
     cd_coarse = chamfer_l2(output.coarse, gt).mean() * CD_SCALE
     surface = gamma > 0 and lam > 0
-    cd, to_surface = chamfer_and_surface(output.completion, gt) if surface else \
+    cd, to_surface = chamfer_and_surface(output.completion, gt, normals) if surface else \
         (chamfer_l2(output.completion, gt), None)
     cd_fine = cd.mean() * CD_SCALE
     control, shape = deformation_terms(output)

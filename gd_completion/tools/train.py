@@ -55,6 +55,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--gamma", type=float, default=0.0,
                         help="weight of the surface term: the unsquared distance of each output point to the nearest "
                         "ground-truth point, x100 (default 0: the paper's loss)")
+    parser.add_argument("--surface-planes", action="store_true",
+                        help="measure the surface term to the tangent plane of the nearest ground-truth point (fitted "
+                        "to its 16 nearest) instead of to the point itself, so points within the targets' spacing "
+                        "are still pulled onto the surface (needs --gamma > 0)")
     parser.add_argument("--rho", type=float, default=0.0,
                         help="weight of the repulsion term: output points closer than 0.03 (normalised) to their graph "
                         "neighbours pushed apart, x1000 (default 0: the paper's loss)")
@@ -104,8 +108,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 #: Options a recipe may set (argparse destinations), and their command-line defaults.
 RECIPE_KEYS = ("samples", "val_samples", "seed", "meshes", "mesh_fraction", "epochs", "generation_epochs", "lam",
-               "alpha", "beta", "gamma", "rho", "tangential", "drive", "drive_weight", "drive_precision", "gt_points",
-               "batch_size", "lr", "lr_final", "num_control", "config", "init_from", "init_skip", "sampling", "freeze")
+               "alpha", "beta", "gamma", "surface_planes", "rho", "tangential", "drive", "drive_weight",
+               "drive_precision", "gt_points", "batch_size", "lr", "lr_final", "num_control", "config", "init_from",
+               "init_skip", "sampling", "freeze")
 RECIPE_DEFAULTS: dict[str, Any] = {}
 _PATH_KEYS = ("meshes", "init_from")
 SAMPLING_PRESETS = {"v1": V1_SAMPLING, "v2": V2_SAMPLING}
@@ -249,10 +254,14 @@ def run(args: argparse.Namespace) -> int:
         if drive is None and getattr(args, name) != RECIPE_DEFAULTS[name]:
             raise DataFormatError(f"a {name.replace('_', ' ')} without a drive (--drive, recipe key drive) weighs "
                                   "nothing")
+    if args.surface_planes and not args.gamma > 0:
+        raise DataFormatError("--surface-planes (recipe key surface_planes) shapes the surface term: give it a weight "
+                              "(--gamma > 0)")
     config = load_config(args)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
-                             alpha=args.alpha, beta=args.beta, gamma=args.gamma, rho=args.rho,
+                             alpha=args.alpha, beta=args.beta, gamma=args.gamma,
+                             surface_planes=args.surface_planes, rho=args.rho,
                              tangential=args.tangential, drive_weight=args.drive_weight,
                              drive_precision=args.drive_precision,
                              batch_size=args.batch_size, lr=args.lr, lr_final=args.lr_final, seed=args.seed,
