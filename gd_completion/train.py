@@ -46,7 +46,8 @@ class TrainSettings:
     alpha: float = 1000.0
     beta: float = 0.5
     gamma: float = 0.0              # weight of the surface term (0: the paper's loss); see losses.ggd_loss
-    surface_planes: bool = False    # the surface term to the targets' tangent planes; see losses.plane_distance
+    surface_planes: bool = False    # the surface term to the targets' tangent planes (training only: validation
+    #                                 reports the distance to the nearest target point); see losses.plane_distance
     rho: float = 0.0                # weight of the repulsion term (0: the paper's loss); see losses.ggd_loss
     tangential: bool = False        # the repulsion term within each point's plane; see losses.repulsion
     drive_weight: float = 1.0       # weight of the real drive's batches (`train(drive=)`; losses.drive_loss)
@@ -68,6 +69,9 @@ class TrainSettings:
         if bad:
             raise TrainingError(f"the weight of {' and '.join(bad)} must be >= 0 (0 leaves its term out); got "
                                 + ", ".join(f"{name} {getattr(self, name)}" for name in bad))
+        if self.surface_planes and not self.gamma > 0:
+            raise TrainingError("surface_planes (--surface-planes) shapes the surface term: give that term a weight, "
+                                "gamma > 0 (--gamma)")
 
     def lam_at(self, epoch: int) -> float:
         """Lambda of the 0-based `epoch`."""
@@ -272,10 +276,6 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
         log.info("warm start from %s: %d tensors copied, fresh: %s", init_from,
                  len(model.state_dict()) - len(fresh), ", ".join(fresh) or "none")
     tr_x, tr_y, tr_s = _pairs(train_data, "training data", config)
-    tr_n = None
-    if settings.surface_planes and settings.gamma > 0:
-        tr_n = target_normals(tr_y)
-        log.info("fitted the tangent planes of %d x %d target points", tr_y.shape[0], tr_y.shape[1])
     va_x, va_y, va_s = _pairs(val_data, "validation data", config)
     drive_train, drive_val = (None, None) if drive is None else (
         _pairs(drive[0], "drive training data", config, 1), _pairs(drive[1], "drive validation data", config, 1))
@@ -293,6 +293,10 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
                                                   "resume with the same drive (settings and pairs) and drive_weight"))
     if not any(p.requires_grad for p in model.parameters()):
         raise TrainingError(f"freeze {list(settings.freeze)} leaves no parameter to train")
+    tr_n = None   # the targets' normals, for the surface term to their tangent planes
+    if settings.surface_planes:
+        tr_n = target_normals(tr_y)
+        log.info("fitted the tangent planes of %d x %d target points", tr_y.shape[0], tr_y.shape[1])
     model.to(device)
     train_mode(model, frozen)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings.lr)

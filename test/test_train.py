@@ -457,6 +457,7 @@ def test_plane_distance_pulls_points_onto_the_surface_between_its_samples(tmp_pa
     gt = torch.rand(2, 4096, 3, generator=generator) * torch.tensor([1.0, 1.0, 0.0])   # z = 0
     normals = target_normals(gt)
     assert normals.shape == gt.shape and torch.allclose(normals[..., 2].abs(), torch.ones(2, 4096))
+    assert torch.equal(target_normals(gt, batch=1), normals)   # one sample at a time: the same
     points = torch.rand(2, 500, 3, generator=generator) * torch.tensor([0.8, 0.8, 0.0]) + torch.tensor([0.1, 0.1, 0.0])
     assert plane_distance(points, gt, normals).max() < 1e-5
     lifted = points + torch.tensor([0.0, 0.0, 0.005])
@@ -479,11 +480,17 @@ def test_plane_distance_pulls_points_onto_the_surface_between_its_samples(tmp_pa
     assert planar["surface"].item() == pytest.approx(
         100 * plane_distance(out.completion, target, target_normals(target)).mean().item(), rel=1e-5)
     assert planar["surface"] < ggd_loss(out, target, lam=3.0, gamma=2.0)["surface"]
-    result = train(TINY, (partial, complete), (partial[:4], complete[:4]), tmp_path / "run",
-                   _settings(gamma=1.0, surface_planes=True))
-    assert result.history[1]["train_surface"] > 0
+    dense = np.concatenate([complete, complete[:, ::-1] * 0.999], axis=1)   # more targets than N_o
+    planes, points = (train(TINY, (partial, dense), (partial[:4], dense[:4]), tmp_path / name,
+                            _settings(gamma=1.0, surface_planes=on)).history[1]
+                      for name, on in (("planes", True), ("points", False)))
+    # the same first epoch (lambda 0), then the training's surface term is the planes' distance, validation's not
+    assert 0 < planes["train_surface"] < 0.8 * points["train_surface"]
+    assert planes["val_surface"] == pytest.approx(points["val_surface"], rel=0.2)
+    with pytest.raises(TrainingError, match="gamma > 0"):
+        TrainSettings(surface_planes=True)
     assert main(["train", "--output", str(tmp_path / "cli"), "--surface-planes", "--samples", "4"]) == 2
-    assert "--gamma > 0" in capsys.readouterr().err and not (tmp_path / "cli").exists()
+    assert "gamma > 0" in capsys.readouterr().err and not (tmp_path / "cli").exists()
 
 
 def test_repulsion_term_pushes_clumped_points_apart_and_ignores_spread_ones(tmp_path):

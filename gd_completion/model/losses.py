@@ -18,7 +18,7 @@ NEAR_REFERENCE = 0.03   # `drive_loss`'s precision term: output points farther f
 # surface (about 2 square lengths: 1e-3 each, 0.03 apart).
 REPULSION_RADIUS = 0.03
 # Neighbours of each ground-truth point whose least-squares plane gives its normal (`target_normals`): with 4,096
-# points on a car (about 0.02 lengths apart) a patch about 0.04 lengths across.
+# points on a car (about 0.02 lengths apart) a patch about 0.1 lengths across.
 NORMAL_NEIGHBOURS = 16
 
 
@@ -71,10 +71,11 @@ def target_normals(targets: Tensor, k: int = NORMAL_NEIGHBOURS, batch: int = 64)
 def plane_distance(points: Tensor, gt: Tensor, normals: Tensor, nearest: Tensor | None = None) -> Tensor:
     """Mean over `points` (B, N, 3) of the distance to the tangent plane (`normals` (B, M, 3)) of the nearest point
     of `gt` (B, M, 3), (B,): `surface_distance` without the part along the surface. The nearest sample of a surface
-    sampled every 0.02 lengths lies about 0.01 lengths away from a point on the surface, so the point-to-point term
-    pulls a point within that distance onto the sample (sideways) more than onto the surface, and weakly, as a
-    squared term would; the plane's distance keeps the same pull down to the surface. `nearest`: the indices
-    (B, N) of the nearest `gt` point if already found."""
+    sampled every 0.02 lengths lies about 0.01 lengths away from a point on the surface, so for a point nearer the
+    surface than that the point-to-point term's pull is mostly sideways, towards the sample, and its part along the
+    normal shrinks with the distance; the plane's distance pulls along the normal with the same force down to the
+    surface. It does not pull along the surface: a point beyond a sheet's edge, in its plane, costs nothing here and
+    is held by the Chamfer term alone. `nearest`: the indices (B, N) of the nearest `gt` point if already found."""
     nearest = nearest_index(points, gt) if nearest is None else nearest
     along = ((points - gather_points(gt, nearest)) * gather_points(normals, nearest)).sum(-1)
     return _unsquared_mean(along.pow(2))

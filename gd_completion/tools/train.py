@@ -254,9 +254,6 @@ def run(args: argparse.Namespace) -> int:
         if drive is None and getattr(args, name) != RECIPE_DEFAULTS[name]:
             raise DataFormatError(f"a {name.replace('_', ' ')} without a drive (--drive, recipe key drive) weighs "
                                   "nothing")
-    if args.surface_planes and not args.gamma > 0:
-        raise DataFormatError("--surface-planes (recipe key surface_planes) shapes the surface term: give it a weight "
-                              "(--gamma > 0)")
     config = load_config(args)
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     settings = TrainSettings(epochs=args.epochs, generation_epochs=args.generation_epochs, lam=args.lam,
