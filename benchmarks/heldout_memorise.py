@@ -1,0 +1,73 @@
+"""How near the true surface the network can bring its points on pairs it trains on over and over (issue 32's point
+3: is the network's distance from the surface a matter of generalisation, or of what it can fit at all?).
+
+Fine-tunes a checkpoint (default: the shipped weights) on the evaluation's `seen-meshes` pairs (the 12 training
+meshes, `benchmarks/heldout_oracles.py --pairs seen-meshes`: the evaluation's seed, exact boxes), validating on the
+same pairs, in stages; before and after each stage, the published output scored as `heldout_oracles.py` scores it
+(CD, CD(D,G) x1e4, F-score@1 % (precision / recall), on the surface), then the mean and median distance to the true
+mesh of its network points and the mean of the raw completion's (x length). The targets are the pairs' two surface
+samples together (4,096 points); the losses, weights and frozen refiner are the shipped recipe's (lambda 3, gamma 3,
+batch 16); no drive. One core, about 30 s an epoch.
+
+    python benchmarks/heldout_memorise.py OUTPUT [--stages 5,15,40] [--lr 1e-4] [--model PT] [--pairs 128]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from heldout_oracles import on_surface, score
+from scipy.spatial import cKDTree
+
+from gd_completion.evaluation.baselines import published_outputs
+from gd_completion.evaluation.synthetic import HeldOut, load_mesh_pairs
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.preprocess import network_input
+from gd_completion.synth.meshio import HELDOUT_MESHES, mesh_files
+from gd_completion.train import TrainSettings, train
+
+
+def measure(path: str, label: str, pairs: HeldOut) -> None:
+    """Print the published output's scores and its network points' distance to the true meshes."""
+    assert pairs.meshes is not None
+    outputs = published_outputs(load_model(path), list(pairs.partial), np.asarray(pairs.sizes, np.float64))
+    published, completion = outputs.published, outputs.completion
+    network = np.stack([cKDTree(c).query(p)[0] == 0.0 for p, c in zip(published, completion)])
+    snapped = np.stack([on_surface(p, m) for p, m in zip(published, pairs.meshes)])
+    gap = np.linalg.norm(published - snapped, axis=-1)[network]
+    raw = np.concatenate([np.linalg.norm(c - on_surface(c, m), axis=-1) for c, m in zip(completion, pairs.meshes)])
+    score(label, published, pairs)
+    print(f"{label}: network points in the output: mean {gap.mean():.4f} median {np.median(gap):.4f}; "
+          f"the raw completion's: mean {raw.mean():.4f}", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("output", help="training folder (resumed stage by stage)")
+    parser.add_argument("--stages", default="5,15,40", help="epochs after which to measure (default 5,15,40)")
+    parser.add_argument("--lr", type=float, default=1e-4)
+    parser.add_argument("--model", default=str(DEFAULT_WEIGHTS), help="the starting checkpoint")
+    parser.add_argument("--meshes", default="../shared/data/vehicle-meshes")
+    parser.add_argument("--pairs", type=int, default=128)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    pairs = load_mesh_pairs(args.pairs, args.meshes, [
+        p.stem for p in mesh_files(args.meshes) if p.stem not in HELDOUT_MESHES], what="training")
+    assert pairs.surface is not None and pairs.sizes is not None
+    inputs = np.stack([network_input(p, 512) for p in pairs.partial])
+    data = (inputs, np.concatenate([pairs.complete, pairs.surface], 1), pairs.sizes)
+    config = load_model(args.model).config
+    measure(args.model, "start", pairs)
+    for epochs in (int(v) for v in args.stages.split(",")):
+        started = time.time()
+        settings = TrainSettings(epochs=epochs, generation_epochs=0, lam=3.0, gamma=3.0, batch_size=16, lr=args.lr,
+                                 seed=0, freeze=("refiner.",))
+        train(config, data, data, args.output, settings, resume=True, init_from=args.model)
+        print(f"trained to epoch {epochs} in {time.time() - started:.0f} s", flush=True)
+        measure(f"{args.output}/last.pt", f"epoch {epochs}", pairs)
+
+
+if __name__ == "__main__":
+    main()
