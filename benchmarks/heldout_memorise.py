@@ -18,14 +18,12 @@ import time
 
 import numpy as np
 import torch
-from heldout_oracles import on_surface, score
-from scipy.spatial import cKDTree
+from heldout_oracles import network_points, on_surface, score, seen_mesh_pairs
 
 from gd_completion.evaluation.baselines import published_outputs
-from gd_completion.evaluation.synthetic import HeldOut, load_mesh_pairs
+from gd_completion.evaluation.synthetic import HeldOut
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.preprocess import network_input
-from gd_completion.synth.meshio import HELDOUT_MESHES, mesh_files
 from gd_completion.train import TrainSettings, train
 
 
@@ -34,9 +32,7 @@ def measure(path: str, label: str, pairs: HeldOut) -> None:
     assert pairs.meshes is not None
     outputs = published_outputs(load_model(path), list(pairs.partial), np.asarray(pairs.sizes, np.float64))
     published, completion = outputs.published, outputs.completion
-    network = np.stack([cKDTree(c).query(p)[0] == 0.0 for p, c in zip(published, completion)])
-    snapped = np.stack([on_surface(p, m) for p, m in zip(published, pairs.meshes)])
-    gap = np.linalg.norm(published - snapped, axis=-1)[network]
+    gap = network_points(published, completion, pairs.meshes)[2]
     raw = np.concatenate([np.linalg.norm(c - on_surface(c, m), axis=-1) for c, m in zip(completion, pairs.meshes)])
     score(label, published, pairs)
     print(f"{label}: network points in the output: mean {gap.mean():.4f} median {np.median(gap):.4f}; "
@@ -53,8 +49,7 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=128)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    pairs = load_mesh_pairs(args.pairs, args.meshes, [
-        p.stem for p in mesh_files(args.meshes) if p.stem not in HELDOUT_MESHES], what="training")
+    pairs = seen_mesh_pairs(args.pairs, args.meshes)
     assert pairs.surface is not None and pairs.sizes is not None
     inputs = np.stack([network_input(p, 512) for p in pairs.partial])
     data = (inputs, np.concatenate([pairs.complete, pairs.surface], 1), pairs.sizes)

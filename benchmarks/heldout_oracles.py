@@ -64,6 +64,21 @@ def on_surface(points: np.ndarray, mesh: tuple[np.ndarray, np.ndarray], dense: i
     return sample[cKDTree(sample).query(points)[1]]
 
 
+def seen_mesh_pairs(n: int, mesh_dir: str) -> HeldOut:
+    """`n` pairs of the meshes the network was trained on (all but HELDOUT_MESHES), drawn as the held-out pairs are."""
+    return load_mesh_pairs(n, mesh_dir, [p.stem for p in mesh_files(mesh_dir) if p.stem not in HELDOUT_MESHES],
+                           what="training")
+
+
+def network_points(published: np.ndarray, completion: np.ndarray, meshes: list[tuple[np.ndarray, np.ndarray]]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(which published points the merge took from the completion (S, N) bool, every published point moved onto its
+    true mesh (S, N, 3), those network points' distance to it (flat))."""
+    network = np.stack([cKDTree(c).query(p)[0] == 0.0 for p, c in zip(published, completion)])
+    targets = np.stack([on_surface(p, m) for p, m in zip(published, meshes)])
+    return network, targets, np.linalg.norm(published - targets, axis=-1)[network]
+
+
 def score(name: str, clouds: np.ndarray, heldout: HeldOut) -> None:
     """One printed row: CD, CD(D,G), F-score (precision, recall) and the share on the true mesh."""
     assert heldout.meshes is not None
@@ -85,19 +100,16 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     heldout = {"heldout": lambda: load_heldout_meshes(args.heldout, args.meshes),
-               "seen-meshes": lambda: load_mesh_pairs(args.heldout, args.meshes, [   # the meshes trained on
-                   p.stem for p in mesh_files(args.meshes) if p.stem not in HELDOUT_MESHES], what="training"),
+               "seen-meshes": lambda: seen_mesh_pairs(args.heldout, args.meshes),
                "procedural": lambda: load_heldout(args.heldout)}[args.pairs]()
     assert heldout.meshes is not None and heldout.surface is not None and heldout.sizes is not None
     sizes = np.asarray(heldout.sizes, np.float64)
     outputs = published_outputs(load_model(args.model), list(heldout.partial), sizes)
     published, completion = outputs.published, outputs.completion
     n = published.shape[1]
-    network = np.stack([cKDTree(c).query(p)[0] == 0.0 for p, c in zip(published, completion)])
+    network, targets, gap = network_points(published, completion, heldout.meshes)
     perfect_merge = np.stack([merge_with_pool(s[:n] if len(s) >= n else s, p, size=z).points
                               for s, p, z in zip(heldout.surface, heldout.partial, sizes)])
-    targets = np.stack([on_surface(p, m) for p, m in zip(published, heldout.meshes)])
-    gap = np.linalg.norm(published - targets, axis=-1)[network]
     print(f"{args.pairs} pairs ({heldout.source}), {len(sizes)} pairs, {n} output points; CD, CD(D,G) x1e4, "
           f"F-score@1 % (precision / recall), on the surface (within 2 %)")
     score("published", published, heldout)
