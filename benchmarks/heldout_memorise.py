@@ -9,12 +9,19 @@ mesh of its network points and the mean of the raw completion's (x length). The 
 samples together (4,096 points); the losses, weights and frozen refiner are the shipped recipe's (lambda 3, gamma 3,
 batch 16); no drive. One core, about 30 s an epoch.
 
-    python benchmarks/heldout_memorise.py OUTPUT [--stages 5,15,40] [--lr 1e-4] [--model PT] [--pairs 128]
+Capacity and loss probes: `--beta` sets the Laplacian shape term's weight (the shipped 0.5 keeps the deformation from
+changing P_g's local shape); `--gcn-blocks K` grows the G-ResNet to K residual blocks before training, the new blocks
+appended so that the grown network computes exactly what the starting one does (`grown`).
+
+    python benchmarks/heldout_memorise.py OUTPUT [--stages 5,15,40] [--lr 1e-4] [--beta 0.5] [--gcn-blocks K]
+        [--model PT] [--pairs 128]
 """
 from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -22,9 +29,10 @@ from heldout_oracles import network_points, on_surface, score, seen_mesh_pairs
 
 from gd_completion.evaluation.baselines import published_outputs
 from gd_completion.evaluation.synthetic import HeldOut
-from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, load_model, save_checkpoint
+from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import network_input
-from gd_completion.train import TrainSettings, train
+from gd_completion.train import TrainSettings, train, warm_start
 
 
 def measure(path: str, label: str, pairs: HeldOut) -> None:
@@ -39,11 +47,32 @@ def measure(path: str, label: str, pairs: HeldOut) -> None:
           f"the raw completion's: mean {raw.mean():.4f}", flush=True)
 
 
+def grown(path: str, blocks: int, output: str) -> str:
+    """Checkpoint `output`: the network of `path` with its G-ResNet grown to `blocks` residual blocks, the same
+    function. Each appended block's second graph conv starts at zero, so the block halves its input (`GResNet`'s
+    (h + 0) x 0.5); the output conv's weights are doubled once per appended block to undo it."""
+    model, preprocessing = load_checkpoint(path)
+    extra = blocks - model.config.gcn_blocks
+    if extra < 0:
+        raise SystemExit(f"--gcn-blocks {blocks}: the model already has {model.config.gcn_blocks}")
+    bigger = GGDNet(replace(model.config, gcn_blocks=blocks))
+    warm_start(bigger, path)
+    with torch.no_grad():
+        for _, g2 in list(bigger.deform.blocks)[model.config.gcn_blocks:]:
+            for parameter in g2.parameters():
+                parameter.zero_()
+        for lin in (bigger.deform.out.self_lin, bigger.deform.out.nbr_lin):
+            lin.weight.mul_(2.0 ** extra)
+    return str(save_checkpoint(output, bigger.eval(), preprocessing))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("output", help="training folder (resumed stage by stage)")
     parser.add_argument("--stages", default="5,15,40", help="epochs after which to measure (default 5,15,40)")
     parser.add_argument("--lr", type=float, default=1e-4)
+    parser.add_argument("--beta", type=float, default=0.5, help="the Laplacian shape term's weight")
+    parser.add_argument("--gcn-blocks", type=int, help="grow the G-ResNet to this many residual blocks first")
     parser.add_argument("--model", default=str(DEFAULT_WEIGHTS), help="the starting checkpoint")
     parser.add_argument("--meshes", default="../shared/data/vehicle-meshes")
     parser.add_argument("--pairs", type=int, default=128)
@@ -53,13 +82,15 @@ def main() -> None:
     assert pairs.surface is not None and pairs.sizes is not None
     inputs = np.stack([network_input(p, 512) for p in pairs.partial])
     data = (inputs, np.concatenate([pairs.complete, pairs.surface], 1), pairs.sizes)
-    config = load_model(args.model).config
-    measure(args.model, "start", pairs)
+    Path(args.output).mkdir(parents=True, exist_ok=True)
+    start = args.model if args.gcn_blocks is None else grown(args.model, args.gcn_blocks, f"{args.output}/grown.pt")
+    config = load_model(start).config
+    measure(start, "start", pairs)
     for epochs in (int(v) for v in args.stages.split(",")):
         started = time.time()
-        settings = TrainSettings(epochs=epochs, generation_epochs=0, lam=3.0, gamma=3.0, batch_size=16, lr=args.lr,
-                                 seed=0, freeze=("refiner.",))
-        train(config, data, data, args.output, settings, resume=True, init_from=args.model)
+        settings = TrainSettings(epochs=epochs, generation_epochs=0, lam=3.0, beta=args.beta, gamma=3.0, batch_size=16,
+                                 lr=args.lr, seed=0, freeze=("refiner.",))
+        train(config, data, data, args.output, settings, resume=True, init_from=start)
         print(f"trained to epoch {epochs} in {time.time() - started:.0f} s", flush=True)
         measure(f"{args.output}/last.pt", f"epoch {epochs}", pairs)
 

@@ -6,7 +6,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -234,7 +234,7 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     objective: P_o's CD, plus `drive_weight` times the drive pairs' coverage with a drive).
 
     `overrides` set TrainSettings fields (epochs=, batch_size=, lr=, generation_epochs=, lam=, device=,
-    seed=, time_budget_s=...). With `resume=True` and an existing last.pt, training continues from it
+    seed=, time_budget_s=...) on a copy of `settings`, checked as `TrainSettings` checks its own. With `resume=True` and an existing last.pt, training continues from it
     (its model config and optimizer state; the epoch count and schedule come from `settings`).
     Otherwise `init_from` warm-starts the new model from a checkpoint (`warm_start`; e.g. the shipped
     weights for a control-point ablation whose tree decoder differs), skipping the `init_skip` prefixes.
@@ -243,10 +243,10 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     (`drive_frames.drive_pairs`): every step adds a batch of them, weighted `drive_weight` (`losses.drive_loss`).
     """
     settings = settings or TrainSettings()
-    for k, v in overrides.items():
-        if not hasattr(settings, k):
-            raise TypeError(f"train: unknown setting {k!r}")
-        setattr(settings, k, v)
+    unknown = sorted(k for k in overrides if not hasattr(settings, k))
+    if unknown:
+        raise TypeError(f"train: unknown setting {unknown[0]!r}")
+    settings = replace(settings, **overrides)   # a new object, checked like any other (`__post_init__`)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     last_path, best_path = out_dir / "last.pt", out_dir / "best.pt"

@@ -493,6 +493,23 @@ def test_plane_distance_pulls_points_onto_the_surface_between_its_samples(tmp_pa
     assert "gamma > 0" in capsys.readouterr().err and not (tmp_path / "cli").exists()
 
 
+def test_train_overrides_are_checked_like_settings_and_leave_the_callers_settings_alone(tmp_path):
+    """`train(**overrides)` builds checked settings: a bad weight or `surface_planes` without a surface term is
+    refused before any folder is made, an unknown name is a TypeError, and a good override runs without changing the
+    settings object the caller passed."""
+    data = _data(4, 0)
+    for bad, match in (({"surface_planes": True}, "gamma > 0"), ({"rho": -1.0}, "rho"),
+                       ({"gamma": float("nan")}, "gamma")):
+        with pytest.raises(TrainingError, match=match):
+            train(TINY, data, data, tmp_path / "refused", _settings(), **bad)
+    assert not (tmp_path / "refused").exists()
+    with pytest.raises(TypeError, match="unknown setting 'mystery'"):
+        train(TINY, data, data, tmp_path / "refused", _settings(), mystery=1)
+    settings = _settings()
+    result = train(TINY, data, data, tmp_path / "one", settings, epochs=1)
+    assert result.epochs_done == 1 and settings.epochs == 2
+
+
 def test_repulsion_term_pushes_clumped_points_apart_and_ignores_spread_ones(tmp_path):
     """The repulsion term is max(0, r - d)^2 averaged over every point's graph neighbours: 0 for points at least
     r apart, (r - d)^2 for a closer pair (both directions); its gradient moves the pair apart; with rho > 0 it
