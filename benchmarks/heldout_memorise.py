@@ -10,11 +10,11 @@ samples together (4,096 points); the losses, weights and frozen refiner are the 
 batch 16); no drive. One core, about 30 s an epoch.
 
 Capacity and loss probes: `--beta` sets the Laplacian shape term's weight (the shipped 0.5 keeps the deformation from
-changing P_g's local shape); `--gcn-blocks K` grows the G-ResNet to K residual blocks before training, the new blocks
-appended so that the grown network computes exactly what the starting one does (`grown`).
+changing P_g's local shape); `--gcn-blocks K`, `--gcn-width W` and `--tree-hidden H0,H1` grow the network before
+training, so that the grown network computes exactly what the starting one does (`grown`).
 
     python benchmarks/heldout_memorise.py OUTPUT [--stages 5,15,40] [--lr 1e-4] [--beta 0.5] [--gcn-blocks K]
-        [--model PT] [--pairs 128]
+        [--gcn-width W] [--tree-hidden H0,H1] [--model PT] [--pairs 128]
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ from gd_completion.evaluation.synthetic import HeldOut
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint, load_model, save_checkpoint
 from gd_completion.model.network import GGDNet
 from gd_completion.preprocess import network_input
-from gd_completion.train import TrainSettings, train, warm_start
+from gd_completion.train import TrainSettings, train
 
 
 def measure(path: str, label: str, pairs: HeldOut) -> None:
@@ -47,22 +47,28 @@ def measure(path: str, label: str, pairs: HeldOut) -> None:
           f"the raw completion's: mean {raw.mean():.4f}", flush=True)
 
 
-def grown(path: str, blocks: int, output: str) -> str:
-    """Checkpoint `output`: the network of `path` with its G-ResNet grown to `blocks` residual blocks, the same
-    function. Each appended block's second graph conv starts at zero, so the block halves its input (`GResNet`'s
-    (h + 0) x 0.5); the output conv's weights are doubled once per appended block to undo it."""
+def grown(path: str, output: str, **changes: object) -> str:
+    """Checkpoint `output`: the network of `path` with the config `changes` (wider decoder or G-ResNet layers, more
+    G-ResNet blocks), computing exactly what it did. Every old weight keeps its place in the leading slice of the
+    bigger tensor; a new unit's incoming weights keep their fresh initialisation and its outgoing weights (a Linear's
+    new input columns) start at zero. Each appended G-ResNet block's second graph conv starts at zero, so the block
+    halves its input (`GResNet`'s (h + 0) x 0.5); the output conv's weights are doubled once per block to undo it."""
     model, preprocessing = load_checkpoint(path)
-    extra = blocks - model.config.gcn_blocks
-    if extra < 0:
-        raise SystemExit(f"--gcn-blocks {blocks}: the model already has {model.config.gcn_blocks}")
-    bigger = GGDNet(replace(model.config, gcn_blocks=blocks))
-    warm_start(bigger, path)
+    old = model.config
+    bigger = GGDNet(replace(old, **changes))
+    state = bigger.state_dict()
+    for name, tensor in model.state_dict().items():
+        target = state[name]
+        if target.dim() == 2 and target.shape[1] > tensor.shape[1]:   # a Linear's new inputs: no effect yet
+            target[:, tensor.shape[1]:] = 0.0
+        target[tuple(slice(0, n) for n in tensor.shape)] = tensor
+    bigger.load_state_dict(state)
     with torch.no_grad():
-        for _, g2 in list(bigger.deform.blocks)[model.config.gcn_blocks:]:
+        for _, g2 in list(bigger.deform.blocks)[old.gcn_blocks:]:
             for parameter in g2.parameters():
                 parameter.zero_()
         for lin in (bigger.deform.out.self_lin, bigger.deform.out.nbr_lin):
-            lin.weight.mul_(2.0 ** extra)
+            lin.weight.mul_(2.0 ** (bigger.config.gcn_blocks - old.gcn_blocks))
     return str(save_checkpoint(output, bigger.eval(), preprocessing))
 
 
@@ -73,6 +79,8 @@ def main() -> None:
     parser.add_argument("--lr", type=float, default=1e-4)
     parser.add_argument("--beta", type=float, default=0.5, help="the Laplacian shape term's weight")
     parser.add_argument("--gcn-blocks", type=int, help="grow the G-ResNet to this many residual blocks first")
+    parser.add_argument("--gcn-width", type=int, help="widen the G-ResNet's features to this first")
+    parser.add_argument("--tree-hidden", help="widen the tree decoder's hidden layers to these first (e.g. 256,128)")
     parser.add_argument("--model", default=str(DEFAULT_WEIGHTS), help="the starting checkpoint")
     parser.add_argument("--meshes", default="../shared/data/vehicle-meshes")
     parser.add_argument("--pairs", type=int, default=128)
@@ -83,7 +91,10 @@ def main() -> None:
     inputs = np.stack([network_input(p, 512) for p in pairs.partial])
     data = (inputs, np.concatenate([pairs.complete, pairs.surface], 1), pairs.sizes)
     Path(args.output).mkdir(parents=True, exist_ok=True)
-    start = args.model if args.gcn_blocks is None else grown(args.model, args.gcn_blocks, f"{args.output}/grown.pt")
+    changes = {k: v for k, v in (("gcn_blocks", args.gcn_blocks), ("gcn_width", args.gcn_width),
+                                 ("tree_hidden", args.tree_hidden and tuple(map(int, args.tree_hidden.split(",")))))
+               if v is not None}
+    start = grown(args.model, f"{args.output}/grown.pt", **changes) if changes else args.model
     config = load_model(start).config
     measure(start, "start", pairs)
     for epochs in (int(v) for v in args.stages.split(",")):

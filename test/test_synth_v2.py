@@ -428,3 +428,24 @@ def test_crop_margin_max_draws_each_samples_margin_and_crops_with_it():
     for bad in (-0.1, 6.0, float("nan")):
         with pytest.raises(ValueError, match="crop_margin_max"):
             SampleOptions(crop_margin_max=bad)
+
+
+def test_bend_taper_lean_moves_a_box_by_the_given_amounts_and_deform_draws_them():
+    """On a 4 x 2 x 1 box: a bend of 0.02 raises both ends by 0.02 of the height; a taper of
+    0.05 widens the front by 5 % and narrows the back as much; a lean of 0.04 moves the top 0.02 of the length forward
+    and leaves the bottom. The data set's random deformation is this with amounts drawn in [-amount, amount]."""
+    from gd_completion.synth.meshio import box_mesh
+    from gd_completion.synth.vehicles import _deform, bend_taper_lean
+
+    box = box_mesh((4.0, 2.0, 1.0))
+    v = box.vertices
+    bent = bend_taper_lean(box, (0.02, 0.0, 0.0)).vertices
+    np.testing.assert_allclose(bent[:, 2] - v[:, 2], 0.02)   # every corner of a box lies at an end
+    tapered = bend_taper_lean(box, (0.0, 0.05, 0.0)).vertices
+    np.testing.assert_allclose(tapered[:, 1], v[:, 1] * np.where(v[:, 0] > 0, 1.05, 0.95))
+    leant = bend_taper_lean(box, (0.0, 0.0, 0.04)).vertices
+    np.testing.assert_allclose(leant[:, 0] - v[:, 0], np.where(v[:, 2] > 0, 0.04 * 4.0 * 0.5, 0.0), atol=1e-12)
+    np.testing.assert_array_equal(bend_taper_lean(box, (0.0, 0.0, 0.0)).vertices, v)
+    amounts = np.random.default_rng(3).uniform(-0.02, 0.02, 3)
+    np.testing.assert_array_equal(_deform(box, np.random.default_rng(3), 0.02).vertices,
+                                  bend_taper_lean(box, amounts).vertices)

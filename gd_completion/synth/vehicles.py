@@ -205,11 +205,17 @@ def generate_vehicle(rng: np.random.Generator, kind: str | None = None, *, size_
 
 def _deform(mesh: Mesh, rng: np.random.Generator, amount: float) -> Mesh:
     """Mild smooth deformation: bend, plan-view trapezoid and lean, each up to `amount` of the size."""
+    return bend_taper_lean(mesh, rng.uniform(-amount, amount, 3))
+
+
+def bend_taper_lean(mesh: Mesh, amounts: np.ndarray | tuple[float, float, float]) -> Mesh:
+    """`mesh` bent (its ends raised by amounts[0] of its height), tapered in plan view (its width grown by amounts[1]
+    at the front, shrunk at the back) and leant (its top moved forward by amounts[2] / 2 of its length)."""
     v = mesh.vertices.copy()
     ext = np.maximum(mesh.extent, 1e-9)
     lo = mesh.bounds[0]
     u = (v - lo) / ext - 0.5  # in [-0.5, 0.5]
-    a = rng.uniform(-amount, amount, 3)
+    a = np.asarray(amounts, dtype=np.float64)
     v[:, 2] += a[0] * ext[2] * (4 * u[:, 0] ** 2)
     v[:, 1] *= 1 + a[1] * 2 * u[:, 0]
     v[:, 0] += a[2] * ext[0] * 0.5 * (u[:, 2] + 0.5)

@@ -1,0 +1,123 @@
+"""How much of issue 32's point 3 the training meshes can give at all: the held-out meshes' published output with its
+network points moved onto the nearest *training* shape instead of the true mesh.
+
+For each held-out pair (the evaluation's, `evaluation.synthetic.load_heldout_meshes`), every one of the 12 training
+meshes (`synth.meshio.load_mesh_folder` without HELDOUT_MESHES) is made into candidates the way the data set makes
+its shapes: deformed (`synth.vehicles.bend_taper_lean`, each of its three amounts on the grid GRID, the data set's
+range), stretched to the pair's true box (`fit_to_size`: the exact box, as the network is given it) and turned end
+for end or not. The candidate whose CANDIDATE_POINTS points (area-weighted on the undeformed mesh, carried along by
+the deformation) lie nearest the true mesh (CHOICE_SAMPLES points of it) on average is the pair's *oracle shape*. It is chosen with the truth, so
+it is more than a network could know: an optimistic bound on completing a held-out vehicle from knowledge of the
+training meshes and their deformations alone.
+
+Printed: the oracle shapes' distance to the true meshes (mean, share within 1 % and 2 % of the length) and which
+training mesh each held-out mesh takes; then, as `benchmarks/heldout_oracles.py` prints them (CD, CD(D,G) x1e4,
+F-score@1 % (precision / recall), share within 2 % of the true mesh):
+
+- `published`: the shipped pipeline's output;
+- `network points onto oracle shape`: each network point (the merge took it from the completion) moved onto its
+  nearest of SNAP_POINTS points of the pair's oracle shape, the measured and mirrored points kept;
+- `network points onto true mesh`: the same onto the true mesh (`heldout_oracles.py`'s 100 % row).
+
+    python benchmarks/heldout_shape_knowledge.py [--model PT] [--meshes DIR] [--heldout N]
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+from collections import Counter
+
+import numpy as np
+import torch
+import trimesh
+from heldout_oracles import SNAP_SAMPLES, network_points, score
+from scipy.spatial import cKDTree
+
+from gd_completion.evaluation.baselines import published_outputs
+from gd_completion.evaluation.synthetic import load_heldout_meshes
+from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.synth.meshio import HELDOUT_MESHES, Mesh, load_mesh_folder, mesh_files
+from gd_completion.synth.vehicles import bend_taper_lean, fit_to_size
+
+GRID = (-0.02, 0.0, 0.02)   # each deformation amount (perturb_mesh's deform=0.02 draws them in [-0.02, 0.02])
+CANDIDATE_POINTS = 1_000    # points per candidate when choosing the oracle shape
+CHOICE_SAMPLES = 50_000     # points of the true mesh the candidates are measured against when choosing
+SNAP_POINTS = 200_000       # points of the chosen oracle shape the network points are moved onto
+
+
+class SurfacePoints:
+    """Points sampled area-weighted on a mesh, kept as (face, barycentric weights) so that they follow any change of
+    the mesh's vertices."""
+
+    def __init__(self, mesh: Mesh, n: int, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        corners = mesh.vertices[mesh.faces]
+        area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+        self.faces = mesh.faces[rng.choice(len(area), n, p=area / area.sum())]
+        r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
+        self.weights = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], 1)
+
+    def on(self, vertices: np.ndarray) -> np.ndarray:
+        """(n, 3) the points on the mesh with these vertices."""
+        return np.einsum("nk,nkd->nd", self.weights, vertices[self.faces])
+
+
+def candidates(mesh: Mesh, extent: np.ndarray) -> list[np.ndarray]:
+    """Vertices of every candidate made from training `mesh` for a true box of `extent` (normalised frame)."""
+    out = []
+    for amounts in itertools.product(GRID, repeat=3):
+        vertices = fit_to_size(bend_taper_lean(mesh, amounts), extent).vertices
+        out += [vertices, vertices * np.array([-1.0, -1.0, 1.0])]   # and turned end for end
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", default=str(DEFAULT_WEIGHTS))
+    parser.add_argument("--meshes", default="../shared/data/vehicle-meshes")
+    parser.add_argument("--heldout", type=int, default=128, help="held-out mesh pairs (as the evaluation)")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    heldout = load_heldout_meshes(args.heldout, args.meshes)
+    assert heldout.meshes is not None and heldout.sizes is not None and heldout.mesh_names is not None
+    training = load_mesh_folder(args.meshes, exclude=HELDOUT_MESHES)
+    names = [p.stem for p in mesh_files(args.meshes) if p.stem not in HELDOUT_MESHES]
+    choose = [SurfacePoints(m, CANDIDATE_POINTS) for m in training]
+    snap = [SurfacePoints(m, SNAP_POINTS, seed=1) for m in training]
+    outputs = published_outputs(load_model(args.model), list(heldout.partial), np.asarray(heldout.sizes, np.float64))
+    published = outputs.published
+    network, on_truth, _ = network_points(published, outputs.completion, heldout.meshes)
+    onto_oracle = published.copy()
+    oracle_distance, taken = [], Counter()
+    for i, (vertices, faces) in enumerate(heldout.meshes):
+        true_surface = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+        coarse_truth = cKDTree(trimesh.sample.sample_surface(true_surface, CHOICE_SAMPLES, seed=0)[0])
+        truth = cKDTree(trimesh.sample.sample_surface(true_surface, SNAP_SAMPLES, seed=0)[0])
+        extent = vertices.max(0) - vertices.min(0)
+        best = (np.inf, 0, np.empty(0))
+        for m, (mesh, points) in enumerate(zip(training, choose)):
+            for candidate in candidates(mesh, extent):
+                mean = float(coarse_truth.query(points.on(candidate))[0].mean())
+                if mean < best[0]:
+                    best = (mean, m, candidate)
+        _, m, candidate = best
+        taken[(heldout.mesh_names[i], names[m])] += 1
+        shape = snap[m].on(candidate)
+        oracle_distance.append(truth.query(shape[:: SNAP_POINTS // CANDIDATE_POINTS])[0])
+        moved = shape[cKDTree(shape).query(published[i, network[i]])[1]]
+        onto_oracle[i, network[i]] = moved
+    distance = np.concatenate(oracle_distance)
+    print(f"held-out pairs: {len(published)}; oracle shapes' distance to the true meshes (x length): mean "
+          f"{distance.mean():.4f}, within 1 % {np.mean(distance <= 0.01):.3f}, within 2 % "
+          f"{np.mean(distance <= 0.02):.3f}")
+    for (held, train), count in sorted(taken.items()):
+        print(f"  {held:22s} <- {train:22s} {count:3d} pairs")
+    print("CD, CD(D,G) x1e4, F-score@1 % (precision / recall), on the surface (within 2 %)")
+    score("published", published, heldout)
+    score("network points onto oracle shape", onto_oracle.astype(np.float32), heldout)
+    score("network points onto true mesh", np.where(network[..., None], on_truth, published).astype(np.float32),
+          heldout)
+
+
+if __name__ == "__main__":
+    main()
