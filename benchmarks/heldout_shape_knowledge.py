@@ -6,20 +6,32 @@ meshes (`synth.meshio.load_mesh_folder` without HELDOUT_MESHES) is made into can
 its shapes: deformed (`synth.vehicles.bend_taper_lean`, each of its three amounts on the grid GRID, the data set's
 range), stretched to the pair's true box (`fit_to_size`: the exact box, as the network is given it) and turned end
 for end or not. The candidate whose CANDIDATE_POINTS points (area-weighted on the undeformed mesh, carried along by
-the deformation) lie nearest the true mesh (CHOICE_SAMPLES points of it) on average is the pair's *oracle shape*. It is chosen with the truth, so
-it is more than a network could know: an optimistic bound on completing a held-out vehicle from knowledge of the
-training meshes and their deformations alone.
+the deformation) lie nearest the true mesh (CHOICE_SAMPLES points of it) on average is the pair's *oracle shape*. It
+is chosen with the truth, so it is more than a network could know: an optimistic bound on completing a held-out
+vehicle from knowledge of the training meshes and their deformations alone. The *input's shape* is the candidate
+chosen without the truth: the one whose CANDIDATE_POINTS points lie nearest, on average, to the pair's measured
+points and their mirror image (y -> -y), what a retrieval from the scan could pick.
 
-Printed: the oracle shapes' distance to the true meshes (mean, share within 1 % and 2 % of the length) and which
-training mesh each held-out mesh takes; then, as `benchmarks/heldout_oracles.py` prints them (CD, CD(D,G) x1e4,
-F-score@1 % (precision / recall), share within 2 % of the true mesh):
+Printed: the oracle shapes' and the input's shapes' distance to the true meshes (mean, share within 1 % and 2 % of
+the length) and which training mesh each held-out mesh takes; then, as `benchmarks/heldout_oracles.py` prints them
+(CD, CD(D,G) x1e4, F-score@1 % (precision / recall), share within 2 % of the true mesh):
 
 - `published`: the shipped pipeline's output;
 - `network points onto oracle shape`: each network point (the merge took it from the completion) moved onto its
   nearest of SNAP_POINTS points of the pair's oracle shape, the measured and mirrored points kept;
+- `network points onto input's shape`: the same onto the input's shape;
 - `network points onto true mesh`: the same onto the true mesh (`heldout_oracles.py`'s 100 % row).
 
-    python benchmarks/heldout_shape_knowledge.py [--model PT] [--meshes DIR] [--heldout N]
+`--pandaset DIR` first prints PandaSet-002's reduced protocol (`benchmarks/spacing_variants.py`'s: coverage x1e3,
+overall and per input-size bucket, of the network's spaced points and of the published output), shipped and with
+every network point moved onto the input's shape (chosen for the box given, exact) before the merge, the mirror +
+template prior beside them: whether a shape from the training meshes helps on real vehicles too.
+
+`--pairs seen-meshes` scores the training meshes' own pairs instead (`heldout_oracles.seen_mesh_pairs`), where the
+true shape is among the candidates: what is left there is the grid's coarseness.
+
+    python benchmarks/heldout_shape_knowledge.py [--model PT] [--meshes DIR] [--heldout N] [--pairs heldout]
+        [--pandaset DIR]
 """
 from __future__ import annotations
 
@@ -30,12 +42,20 @@ from collections import Counter
 import numpy as np
 import torch
 import trimesh
-from heldout_oracles import SNAP_SAMPLES, network_points, score
+from heldout_oracles import SNAP_SAMPLES, network_points, score, seen_mesh_pairs
 from scipy.spatial import cKDTree
+from spacing_variants import by_bucket
 
-from gd_completion.evaluation.baselines import published_outputs
+from gd_completion.evaluation import pandaset_eval as pe
+from gd_completion.evaluation.baselines import network_forward, published_outputs
+from gd_completion.evaluation.nearest import nearest_sq
+from gd_completion.evaluation.priors import prior_outputs
 from gd_completion.evaluation.synthetic import load_heldout_meshes
+from gd_completion.merge import merge_with_pool
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
+from gd_completion.model.network import GGDNet
+from gd_completion.preprocess import with_aside
+from gd_completion.spacing import SHIPPED_SPACING, even_spacing
 from gd_completion.synth.meshio import HELDOUT_MESHES, Mesh, load_mesh_folder, mesh_files
 from gd_completion.synth.vehicles import bend_taper_lean, fit_to_size
 
@@ -62,6 +82,21 @@ class SurfacePoints:
         return np.einsum("nk,nkd->nd", self.weights, vertices[self.faces])
 
 
+class Choice:
+    """The published outputs with their network points moved onto one chosen shape per pair, and what was chosen."""
+
+    def __init__(self, published: np.ndarray) -> None:
+        self.output = published.copy()
+        self.distance: list[np.ndarray] = []
+        self.taken: Counter[tuple[str, str]] = Counter()
+
+    def add(self, i: int, held: str, training: str, shape: np.ndarray, truth: cKDTree, network: np.ndarray) -> None:
+        """Pair `i` (mesh `held`) takes `shape` (SNAP_POINTS points) made from mesh `training`."""
+        self.taken[(held, training)] += 1
+        self.distance.append(truth.query(shape[:: SNAP_POINTS // CANDIDATE_POINTS])[0])
+        self.output[i, network] = shape[cKDTree(shape).query(self.output[i, network])[1]]
+
+
 def candidates(mesh: Mesh, extent: np.ndarray) -> list[np.ndarray]:
     """Vertices of every candidate made from training `mesh` for a true box of `extent` (normalised frame)."""
     out = []
@@ -71,50 +106,93 @@ def candidates(mesh: Mesh, extent: np.ndarray) -> list[np.ndarray]:
     return out
 
 
+def input_shape(measured: np.ndarray, extent: np.ndarray, training: list[Mesh], choose: list[SurfacePoints]
+                ) -> tuple[int, np.ndarray]:
+    """(training mesh, candidate vertices) whose points lie nearest, on average, to `measured` and their mirror."""
+    measured = np.concatenate([measured, measured * np.array([1.0, -1.0, 1.0])])
+    best = (np.inf, 0, np.empty(0))
+    for m, (mesh, points) in enumerate(zip(training, choose)):
+        for candidate in candidates(mesh, extent):
+            mean = float(cKDTree(points.on(candidate)).query(measured)[0].mean())
+            if mean < best[0]:
+                best = (mean, m, candidate)
+    return best[1], best[2]
+
+
+def print_pandaset(model: GGDNet, root: str, training: list[Mesh], choose: list[SurfacePoints],
+                   snap: list[SurfacePoints]) -> None:
+    """PandaSet-002's reduced protocol (`benchmarks/spacing_variants.py`): coverage x1e3 overall and per bucket of the
+    network's spaced points and of the published output, shipped and with the network's points moved onto the
+    input's shape before the merge; the prior beside them."""
+    observations = pe.reduced_observations(root)
+    sizes = np.array([o[1] for o in observations])
+    _, raw, graph = network_forward(model, [o[0] for o in observations], sizes)
+    spaced = even_spacing(raw, SHIPPED_SPACING, graph=graph)
+    moved = spaced.copy()
+    for i, (partial, size, _, _) in enumerate(observations):
+        m, candidate = input_shape(partial, np.array([1.0, size[1] / size[0], size[2] / size[0]]), training, choose)
+        shape = snap[m].on(candidate)
+        moved[i] = shape[cKDTree(shape).query(spaced[i])[1]]
+    bins = [name for name, *_ in pe.SIZE_BINS]
+    where = np.array([pe.size_bin(len(o[0])) for o in observations])
+    print(f"PandaSet reduced protocol, {len(observations)} observations: coverage x1e3 all / {' / '.join(bins)}")
+    prior = [prior_outputs(with_aside(p, b), s, raw.shape[1])["mirror_template"] for p, s, _, b in observations]
+    prior_coverage = [nearest_sq(o[2], q).mean() * 1e3 for o, q in zip(observations, prior)]
+    print(f"  {'mirror + template':34s} {by_bucket(prior_coverage, where, bins)}")
+    for name, points in (("shipped", spaced), ("onto the input's shape", moved)):
+        network = [nearest_sq(o[2], c).mean() * 1e3 for o, c in zip(observations, points)]
+        merged = [merge_with_pool(c, p, aside=b, size=s).points for c, (p, s, _, b) in zip(points, observations)]
+        published = [nearest_sq(o[2], q).mean() * 1e3 for o, q in zip(observations, merged)]
+        print(f"  {name + ', network alone':34s} {by_bucket(network, where, bins)}")
+        print(f"  {name + ', published':34s} {by_bucket(published, where, bins)}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default=str(DEFAULT_WEIGHTS))
     parser.add_argument("--meshes", default="../shared/data/vehicle-meshes")
     parser.add_argument("--heldout", type=int, default=128, help="held-out mesh pairs (as the evaluation)")
+    parser.add_argument("--pairs", choices=("heldout", "seen-meshes"), default="heldout")
+    parser.add_argument("--pandaset", help="also PandaSet-002's reduced protocol with the input's shape (its folder)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    heldout = load_heldout_meshes(args.heldout, args.meshes)
+    heldout = (load_heldout_meshes if args.pairs == "heldout" else seen_mesh_pairs)(args.heldout, args.meshes)
     assert heldout.meshes is not None and heldout.sizes is not None and heldout.mesh_names is not None
     training = load_mesh_folder(args.meshes, exclude=HELDOUT_MESHES)
     names = [p.stem for p in mesh_files(args.meshes) if p.stem not in HELDOUT_MESHES]
     choose = [SurfacePoints(m, CANDIDATE_POINTS) for m in training]
     snap = [SurfacePoints(m, SNAP_POINTS, seed=1) for m in training]
+    if args.pandaset:
+        print_pandaset(load_model(args.model), args.pandaset, training, choose, snap)
     outputs = published_outputs(load_model(args.model), list(heldout.partial), np.asarray(heldout.sizes, np.float64))
     published = outputs.published
     network, on_truth, _ = network_points(published, outputs.completion, heldout.meshes)
-    onto_oracle = published.copy()
-    oracle_distance, taken = [], Counter()
+    chosen = {"oracle shape": Choice(published), "input's shape": Choice(published)}
     for i, (vertices, faces) in enumerate(heldout.meshes):
         true_surface = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
         coarse_truth = cKDTree(trimesh.sample.sample_surface(true_surface, CHOICE_SAMPLES, seed=0)[0])
         truth = cKDTree(trimesh.sample.sample_surface(true_surface, SNAP_SAMPLES, seed=0)[0])
         extent = vertices.max(0) - vertices.min(0)
-        best = (np.inf, 0, np.empty(0))
+        best = {"oracle shape": (np.inf, 0, np.empty(0))}
         for m, (mesh, points) in enumerate(zip(training, choose)):
             for candidate in candidates(mesh, extent):
                 mean = float(coarse_truth.query(points.on(candidate))[0].mean())
-                if mean < best[0]:
-                    best = (mean, m, candidate)
-        _, m, candidate = best
-        taken[(heldout.mesh_names[i], names[m])] += 1
-        shape = snap[m].on(candidate)
-        oracle_distance.append(truth.query(shape[:: SNAP_POINTS // CANDIDATE_POINTS])[0])
-        moved = shape[cKDTree(shape).query(published[i, network[i]])[1]]
-        onto_oracle[i, network[i]] = moved
-    distance = np.concatenate(oracle_distance)
-    print(f"held-out pairs: {len(published)}; oracle shapes' distance to the true meshes (x length): mean "
-          f"{distance.mean():.4f}, within 1 % {np.mean(distance <= 0.01):.3f}, within 2 % "
-          f"{np.mean(distance <= 0.02):.3f}")
-    for (held, train), count in sorted(taken.items()):
-        print(f"  {held:22s} <- {train:22s} {count:3d} pairs")
+                if mean < best["oracle shape"][0]:
+                    best["oracle shape"] = (mean, m, candidate)
+        best["input's shape"] = (0.0, *input_shape(heldout.partial[i], extent, training, choose))
+        for name, (_, m, candidate) in best.items():
+            chosen[name].add(i, heldout.mesh_names[i], names[m], snap[m].on(candidate), truth, network[i])
+    for name, choice in chosen.items():
+        distance = np.concatenate(choice.distance)
+        print(f"{args.pairs} pairs: {len(published)}; the {name}s' distance to the true meshes (x length): mean "
+              f"{distance.mean():.4f}, within 1 % {np.mean(distance <= 0.01):.3f}, within 2 % "
+              f"{np.mean(distance <= 0.02):.3f}")
+        for (held, train), count in sorted(choice.taken.items()):
+            print(f"  {held:22s} <- {train:22s} {count:3d} pairs")
     print("CD, CD(D,G) x1e4, F-score@1 % (precision / recall), on the surface (within 2 %)")
     score("published", published, heldout)
-    score("network points onto oracle shape", onto_oracle.astype(np.float32), heldout)
+    for name, choice in chosen.items():
+        score(f"network points onto {name}", choice.output.astype(np.float32), heldout)
     score("network points onto true mesh", np.where(network[..., None], on_truth, published).astype(np.float32),
           heldout)
 
