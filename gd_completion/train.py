@@ -234,8 +234,9 @@ def train(config: GGDConfig, train_data: ArrayPair, val_data: ArrayPair, out_dir
     objective: P_o's CD, plus `drive_weight` times the drive pairs' coverage with a drive).
 
     `overrides` set TrainSettings fields (epochs=, batch_size=, lr=, generation_epochs=, lam=, device=,
-    seed=, time_budget_s=...) on a copy of `settings`, checked as `TrainSettings` checks its own. With `resume=True` and an existing last.pt, training continues from it
-    (its model config and optimizer state; the epoch count and schedule come from `settings`).
+    seed=, time_budget_s=...) on a copy of `settings`, checked as `TrainSettings` checks its own. With
+    `resume=True` and an existing last.pt, training continues from it (its model config and optimizer state; the
+    epoch count and schedule come from `settings`).
     Otherwise `init_from` warm-starts the new model from a checkpoint (`warm_start`; e.g. the shipped
     weights for a control-point ablation whose tree decoder differs), skipping the `init_skip` prefixes.
     `preprocessing`: the contract the data was made with (`synth.dataset` metadata), stored in every checkpoint.
