@@ -5,9 +5,9 @@ Fine-tunes a checkpoint (default: the shipped weights) on the evaluation's `seen
 meshes, `benchmarks/heldout_oracles.py --pairs seen-meshes`: the evaluation's seed, exact boxes), validating on the
 same pairs, in stages; before and after each stage, the published output scored as `heldout_oracles.py` scores it
 (CD, CD(D,G) x1e4, F-score@1 % (precision / recall), on the surface), then the mean and median distance to the true
-mesh of its network points and the mean of the raw completion's (x length). The targets are the pairs' two surface
-samples together (4,096 points); the losses, weights and frozen refiner are the shipped recipe's (lambda 3, gamma 3,
-batch 16: 8 steps an epoch); no drive. One core, about 30 s an epoch.
+mesh of its network points and the mean of the whole completion's before the merge (evenly spaced, x length). The
+targets are the pairs' two surface samples together (4,096 points); the losses, weights and frozen refiner are the
+shipped recipe's (lambda 3, gamma 3, batch 16: 8 steps an epoch); no drive. One core, about 30 s an epoch.
 
 Capacity and loss probes: `--beta` sets the Laplacian shape term's weight (the shipped 0.5 keeps the deformation from
 changing P_g's local shape); `--gcn-blocks K`, `--gcn-width W` and `--tree-hidden H0,H1` grow the network before
@@ -44,7 +44,7 @@ def measure(path: str, label: str, pairs: HeldOut) -> None:
     raw = np.concatenate([np.linalg.norm(c - on_surface(c, m), axis=-1) for c, m in zip(completion, pairs.meshes)])
     score(label, published, pairs)
     print(f"{label}: network points in the output: mean {gap.mean():.4f} median {np.median(gap):.4f}; "
-          f"the raw completion's: mean {raw.mean():.4f}", flush=True)
+          f"the spaced completion's: mean {raw.mean():.4f}", flush=True)
 
 
 def grown(path: str, output: str, **changes: object) -> str:
