@@ -10,11 +10,12 @@ targets are the pairs' two surface samples together (4,096 points); the losses, 
 shipped recipe's (lambda 3, gamma 3, batch 16: 8 steps an epoch); no drive. One core, about 30 s an epoch.
 
 Capacity and loss probes: `--beta` sets the Laplacian shape term's weight (the shipped 0.5 keeps the deformation from
-changing P_g's local shape); `--gcn-blocks K`, `--gcn-width W` and `--tree-hidden H0,H1` grow the network before
-training, so that the grown network computes exactly what the starting one does (`grown`).
+changing P_g's local shape), `--batch` the pairs per step; `--gcn-blocks K`, `--gcn-width W`, `--tree-hidden H0,H1`
+and `--shape-basis K` (`GGDConfig.shape_basis`) grow the network before training, so that the grown network
+computes exactly what the starting one does (`grown`).
 
     python benchmarks/heldout_memorise.py OUTPUT [--stages 5,15,40] [--lr 1e-4] [--batch 16] [--beta 0.5]
-        [--gcn-blocks K] [--gcn-width W] [--tree-hidden H0,H1] [--model PT] [--pairs 128]
+        [--gcn-blocks K] [--gcn-width W] [--tree-hidden H0,H1] [--shape-basis K] [--model PT] [--pairs 128]
 """
 from __future__ import annotations
 
@@ -82,6 +83,7 @@ def main() -> None:
     parser.add_argument("--gcn-blocks", type=int, help="grow the G-ResNet to this many residual blocks first")
     parser.add_argument("--gcn-width", type=int, help="widen the G-ResNet's features to this first")
     parser.add_argument("--tree-hidden", help="widen the tree decoder's hidden layers to these first (e.g. 256,128)")
+    parser.add_argument("--shape-basis", type=int, help="add a learned shape basis of this many shapes first")
     parser.add_argument("--model", default=str(DEFAULT_WEIGHTS), help="the starting checkpoint")
     parser.add_argument("--meshes", default="../shared/data/vehicle-meshes")
     parser.add_argument("--pairs", type=int, default=128)
@@ -93,7 +95,8 @@ def main() -> None:
     data = (inputs, np.concatenate([pairs.complete, pairs.surface], 1), pairs.sizes)
     Path(args.output).mkdir(parents=True, exist_ok=True)
     changes = {k: v for k, v in (("gcn_blocks", args.gcn_blocks), ("gcn_width", args.gcn_width),
-                                 ("tree_hidden", args.tree_hidden and tuple(map(int, args.tree_hidden.split(",")))))
+                                 ("tree_hidden", args.tree_hidden and tuple(map(int, args.tree_hidden.split(",")))),
+                                 ("shape_basis", args.shape_basis))
                if v is not None}
     start = grown(args.model, f"{args.output}/grown.pt", **changes) if changes else args.model
     config = load_model(start).config

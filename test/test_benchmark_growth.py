@@ -23,7 +23,7 @@ def test_grown_network_has_more_parameters_and_the_same_output(tmp_path):
     path = save_checkpoint(tmp_path / "small.pt", small.eval())
     partial = torch.rand(3, TINY.num_input, 3) - 0.5
     before = load_model(path)(partial)
-    for changes in ({"gcn_blocks": 3}, {"gcn_width": 24}, {"tree_hidden": (48, 24)},
+    for changes in ({"gcn_blocks": 3}, {"gcn_width": 24}, {"tree_hidden": (48, 24)}, {"shape_basis": 4},
                     {"gcn_blocks": 2, "gcn_width": 32, "tree_hidden": (64, 16)}):
         big = load_model(grown(str(path), str(tmp_path / "big.pt"), **changes))
         assert all(getattr(big.config, k) == v for k, v in changes.items())

@@ -323,6 +323,36 @@ def test_box_conditioning_starts_as_the_unconditioned_model(tmp_path):
     np.testing.assert_allclose(shapes.numpy(), [[0.4, 1 / 3], [0.4, 2.9 / 6], [2.5 / 12, 3.1 / 12]], rtol=1e-6)
 
 
+def test_shape_basis_starts_as_the_plain_decoder_and_adds_its_weighted_shapes(tmp_path):
+    """`shape_basis` K: a warm start from a checkpoint without it keeps its outputs exactly (the coefficients start at
+    zero); with coefficients set, P_s moves by exactly their combination of the K learned shapes; it trains; a
+    negative K is refused."""
+    from dataclasses import replace
+
+    from gd_completion.train import warm_start
+
+    torch.manual_seed(0)
+    plain = GGDNet(TINY).eval()
+    save_checkpoint(tmp_path / "plain.pt", plain)
+    based = GGDNet(replace(TINY, shape_basis=3)).eval()
+    assert sorted(warm_start(based, tmp_path / "plain.pt")) == [
+        "decoder.basis", "decoder.basis_weights.bias", "decoder.basis_weights.weight"]
+    assert based.decoder.basis.shape == (3, TINY.num_coarse, 3) and based.decoder.basis.abs().max() > 0
+    x = torch.rand(2, TINY.num_input, 3) - 0.5
+    with torch.no_grad():
+        assert torch.equal(based(x).coarse, plain(x).coarse)
+        based.decoder.basis_weights.bias.copy_(torch.tensor([2.0, 0.0, -1.0]))
+        moved = based(x).coarse - plain(x).coarse
+    expected = 2.0 * based.decoder.basis[0] - based.decoder.basis[2]
+    torch.testing.assert_close(moved, expected.expand_as(moved), atol=1e-6, rtol=0)
+    based.train()
+    based(x).coarse.square().sum().backward()
+    assert based.decoder.basis.grad.abs().max() > 0 and based.decoder.basis_weights.weight.grad.abs().max() > 0
+    assert GGDConfig.from_dict(based.config.to_dict()).shape_basis == 3
+    with pytest.raises(ValueError, match="shape_basis"):
+        replace(TINY, shape_basis=-1)
+
+
 def test_mirrored_local_features_reach_the_unseen_side():
     """With mirror_local_features the balls around a point opposite the seen side group mirrored input points."""
     from dataclasses import replace

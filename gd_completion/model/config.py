@@ -26,6 +26,9 @@ class GGDConfig:
     tree_arity: tuple[int, ...] = (8, 8, 4, 7)
     tree_node_dim: int = 16
     tree_hidden: tuple[int, ...] = (128, 64)
+    # a learned linear shape basis added to the tree's points: P_s += sum_k c_k(code) T_k, T_k (N_s, 3) parameters
+    # (0: none, the paper's decoder; a probe of issue 32's point 3, docs/MODEL.md "A learned shape basis")
+    shape_basis: int = 0
     # local features: ball grouping of input points around each point of P_g
     radius: float = 0.05                         # r in the normalised frame (vehicle length = 1)
     ball_scales: tuple[int, ...] = (1, 2, 4)     # radii r, 2r, 4r (ball s*r drawn from N/s^2 FPS points)
@@ -68,6 +71,8 @@ class GGDConfig:
             problems.append("num_input too small for encoder_fractions")
         if self.radius <= 0 or self.ball_m < 1 or self.knn_k < 1 or self.gcn_width < 1 or self.gcn_blocks < 0:
             problems.append("radius, ball_m, knn_k, gcn_width must be positive, gcn_blocks >= 0")
+        if self.shape_basis < 0:
+            problems.append("shape_basis must be >= 0")
         if self.knn_k >= self.num_output:
             problems.append("knn_k must be < num_output")
         if not self.refiner_widths or min(self.refiner_widths + self.refiner_hidden) < 1:

@@ -145,6 +145,12 @@ class TreeDecoder(nn.Module):
             if not last:
                 layers.append(nn.Tanh())
             self.rest.append(nn.Sequential(*layers))
+        # the shape basis: coefficients start at zero (a warm start keeps its function), shapes small and random
+        self.basis_weights = nn.Linear(code, cfg.shape_basis) if cfg.shape_basis else None
+        self.basis = nn.Parameter(torch.randn(cfg.shape_basis, cfg.num_coarse, 3) * 0.01) if cfg.shape_basis else None
+        if self.basis_weights is not None:
+            nn.init.zeros_(self.basis_weights.weight)
+            nn.init.zeros_(self.basis_weights.bias)
 
     def forward(self, code: Tensor) -> Tensor:
         b = code.shape[0]
@@ -152,6 +158,8 @@ class TreeDecoder(nn.Module):
         for node_in, code_in, rest in zip(self.node_in, self.code_in, self.rest):
             h = node_in(nodes) + code_in(code).unsqueeze(1)
             nodes = rest(h).view(b, -1, self.node_dim if rest[-1].__class__ is nn.Tanh else 3)  # type: ignore[index]
+        if self.basis_weights is not None and self.basis is not None:
+            nodes = nodes + torch.einsum("bk,knd->bnd", self.basis_weights(code), self.basis)
         return nodes
 
 
