@@ -48,14 +48,20 @@ def measure(path: str, label: str, pairs: HeldOut) -> None:
           f"the spaced completion's: mean {raw.mean():.4f}", flush=True)
 
 
+NEW_BLOCK_BIAS = 0.01   # an appended G-ResNet block's constant output at first: positive, its ReLU passes gradients
+
+
 def grown(path: str, output: str, **changes: object) -> str:
     """Checkpoint `output`: the network of `path` with the config `changes` (wider decoder or G-ResNet layers, more
-    G-ResNet blocks), computing exactly what it did. Every old weight keeps its place in the leading slice of the
-    bigger tensor; a new unit's incoming weights keep their fresh initialisation and its outgoing weights (a Linear's
-    new input columns) start at zero. Each appended G-ResNet block's second graph conv starts at zero, so the block
-    halves its input (`GResNet`'s (h + 0) x 0.5); the output conv's weights are doubled once per block to undo it."""
+    G-ResNet blocks, a shape basis), computing exactly what it did; the new units train. Every old weight keeps its
+    place in the leading slice of the bigger tensor; a new unit's incoming weights keep their fresh (seeded)
+    initialisation and its outgoing weights (a Linear's new input columns) start at zero. Each appended G-ResNet
+    block's second graph conv starts with zero weights and the bias NEW_BLOCK_BIAS, so the block maps h to
+    (h + NEW_BLOCK_BIAS) x 0.5 (`GResNet`) and its ReLU is open; the output conv's weights are scaled by 2 per block and
+    its bias takes the constant back out."""
     model, preprocessing = load_checkpoint(path)
     old = model.config
+    torch.manual_seed(0)
     bigger = GGDNet(replace(old, **changes))
     state = bigger.state_dict()
     for name, tensor in model.state_dict().items():
@@ -65,11 +71,16 @@ def grown(path: str, output: str, **changes: object) -> str:
         target[tuple(slice(0, n) for n in tensor.shape)] = tensor
     bigger.load_state_dict(state)
     with torch.no_grad():
+        constant = torch.zeros(bigger.config.gcn_width)   # h after the new blocks: h x 2^-blocks + constant
         for _, g2 in list(bigger.deform.blocks)[old.gcn_blocks:]:
-            for parameter in g2.parameters():
-                parameter.zero_()
-        for lin in (bigger.deform.out.self_lin, bigger.deform.out.nbr_lin):
+            g2.self_lin.weight.zero_()
+            g2.nbr_lin.weight.zero_()
+            g2.self_lin.bias.fill_(NEW_BLOCK_BIAS)
+            constant = (constant + NEW_BLOCK_BIAS) * 0.5
+        out = bigger.deform.out
+        for lin in (out.self_lin, out.nbr_lin):
             lin.weight.mul_(2.0 ** (bigger.config.gcn_blocks - old.gcn_blocks))
+        out.self_lin.bias.sub_((out.self_lin.weight + out.nbr_lin.weight) @ constant)   # A(constant) = constant
     return str(save_checkpoint(output, bigger.eval(), preprocessing))
 
 

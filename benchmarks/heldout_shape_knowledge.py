@@ -28,7 +28,8 @@ every network point moved onto the input's shape (chosen for the box given, exac
 template prior beside them: whether a shape from the training meshes helps on real vehicles too.
 
 `--pairs seen-meshes` scores the training meshes' own pairs instead (`heldout_oracles.seen_mesh_pairs`), where the
-true shape is among the candidates: what is left there is the grid's coarseness.
+true mesh is among the candidates (its exact deformation is not, only the grid's nearest): what is left there is the
+grid's coarseness.
 
     python benchmarks/heldout_shape_knowledge.py [--model PT] [--meshes DIR] [--heldout N] [--pairs heldout]
         [--pandaset DIR]
@@ -172,7 +173,8 @@ def main() -> None:
         true_surface = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
         coarse_truth = cKDTree(trimesh.sample.sample_surface(true_surface, CHOICE_SAMPLES, seed=0)[0])
         truth = cKDTree(trimesh.sample.sample_surface(true_surface, SNAP_SAMPLES, seed=0)[0])
-        extent = vertices.max(0) - vertices.min(0)
+        extent = vertices.max(0) - vertices.min(0)   # the exact box the network is given, normalised
+        assert np.allclose(extent, heldout.sizes[i] / heldout.sizes[i][0], atol=1e-4)
         best = {"oracle shape": (np.inf, 0, np.empty(0))}
         for m, (mesh, points) in enumerate(zip(training, choose)):
             for candidate in candidates(mesh, extent):

@@ -14,7 +14,9 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
 from heldout_memorise import grown  # noqa: E402
 
 
-def test_grown_network_has_more_parameters_and_the_same_output(tmp_path):
+def test_grown_network_has_more_parameters_the_same_output_and_every_part_trains(tmp_path):
+    """Each growth computes what the small network did (to float rounding), and two plain gradient steps move every
+    tensor of the grown network: no new part is stuck (a ReLU closed at zero would never pass a gradient)."""
     torch.manual_seed(0)
     small = GGDNet(TINY)
     with torch.no_grad():   # offsets large enough that a wrong copy shows
@@ -32,3 +34,12 @@ def test_grown_network_has_more_parameters_and_the_same_output(tmp_path):
         assert (after.completion - after.generated).abs().max() > 1e-3   # the deformation is not idle
         torch.testing.assert_close(after.completion, before.completion, atol=1e-5, rtol=0)
         torch.testing.assert_close(after.coarse, before.coarse, atol=1e-5, rtol=0)
+        start = {name: p.detach().clone() for name, p in big.named_parameters()}
+        big.train()
+        optimizer = torch.optim.SGD(big.parameters(), lr=0.1)
+        for _ in range(2):
+            optimizer.zero_grad()
+            big(partial).completion.square().sum().backward()
+            optimizer.step()
+        stuck = [name for name, p in big.named_parameters() if torch.equal(p, start[name])]
+        assert not stuck, f"{changes}: never moved: {stuck}"
