@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import itertools
 from collections import Counter
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -107,17 +108,29 @@ def candidates(mesh: Mesh, extent: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def input_shape(measured: np.ndarray, extent: np.ndarray, training: list[Mesh], choose: list[SurfacePoints]
-                ) -> tuple[int, np.ndarray]:
-    """(training mesh, candidate vertices) whose points lie nearest, on average, to `measured` and their mirror."""
+def candidate_shapes(extent: np.ndarray, training: list[Mesh], choose: list[SurfacePoints]
+                     ) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(training mesh, vertices, its CANDIDATE_POINTS points) of every candidate for a true box of `extent`."""
+    return [(m, vertices, points.on(vertices))
+            for m, (mesh, points) in enumerate(zip(training, choose)) for vertices in candidates(mesh, extent)]
+
+
+def nearest_shape(shapes: list[tuple[int, np.ndarray, np.ndarray]], cost: Callable[[np.ndarray], float]
+                  ) -> tuple[int, np.ndarray]:
+    """(training mesh, vertices) of the first of `shapes` whose points have the lowest `cost`."""
+    m, vertices, _ = min(shapes, key=lambda shape: cost(shape[2]))
+    return m, vertices
+
+
+def oracle_shape(truth: cKDTree, shapes: list[tuple[int, np.ndarray, np.ndarray]]) -> tuple[int, np.ndarray]:
+    """The candidate whose points lie nearest, on average, to the true mesh (points of it in `truth`)."""
+    return nearest_shape(shapes, lambda points: float(truth.query(points)[0].mean()))
+
+
+def input_shape(measured: np.ndarray, shapes: list[tuple[int, np.ndarray, np.ndarray]]) -> tuple[int, np.ndarray]:
+    """The candidate whose points lie nearest, on average, to `measured` and their mirror (no truth used)."""
     measured = np.concatenate([measured, measured * np.array([1.0, -1.0, 1.0])])
-    best = (np.inf, 0, np.empty(0))
-    for m, (mesh, points) in enumerate(zip(training, choose)):
-        for candidate in candidates(mesh, extent):
-            mean = float(cKDTree(points.on(candidate)).query(measured)[0].mean())
-            if mean < best[0]:
-                best = (mean, m, candidate)
-    return best[1], best[2]
+    return nearest_shape(shapes, lambda points: float(cKDTree(points).query(measured)[0].mean()))
 
 
 def print_pandaset(model: GGDNet, root: str, training: list[Mesh], choose: list[SurfacePoints],
@@ -131,7 +144,8 @@ def print_pandaset(model: GGDNet, root: str, training: list[Mesh], choose: list[
     spaced = even_spacing(raw, SHIPPED_SPACING, graph=graph)
     moved = spaced.copy()
     for i, (partial, size, _, _) in enumerate(observations):
-        m, candidate = input_shape(partial, np.array([1.0, size[1] / size[0], size[2] / size[0]]), training, choose)
+        extent = np.array([1.0, size[1] / size[0], size[2] / size[0]])
+        m, candidate = input_shape(partial, candidate_shapes(extent, training, choose))
         shape = snap[m].on(candidate)
         moved[i] = shape[cKDTree(shape).query(spaced[i])[1]]
     bins = [name for name, *_ in pe.SIZE_BINS]
@@ -163,9 +177,10 @@ def main() -> None:
     names = [p.stem for p in mesh_files(args.meshes) if p.stem not in HELDOUT_MESHES]
     choose = [SurfacePoints(m, CANDIDATE_POINTS) for m in training]
     snap = [SurfacePoints(m, SNAP_POINTS, seed=1) for m in training]
+    model = load_model(args.model)
     if args.pandaset:
-        print_pandaset(load_model(args.model), args.pandaset, training, choose, snap)
-    outputs = published_outputs(load_model(args.model), list(heldout.partial), np.asarray(heldout.sizes, np.float64))
+        print_pandaset(model, args.pandaset, training, choose, snap)
+    outputs = published_outputs(model, list(heldout.partial), np.asarray(heldout.sizes, np.float64))
     published = outputs.published
     network, on_truth, _ = network_points(published, outputs.completion, heldout.meshes)
     chosen = {"oracle shape": Choice(published), "input's shape": Choice(published)}
@@ -175,14 +190,10 @@ def main() -> None:
         truth = cKDTree(trimesh.sample.sample_surface(true_surface, SNAP_SAMPLES, seed=0)[0])
         extent = vertices.max(0) - vertices.min(0)   # the exact box the network is given, normalised
         assert np.allclose(extent, heldout.sizes[i] / heldout.sizes[i][0], atol=1e-4)
-        best = {"oracle shape": (np.inf, 0, np.empty(0))}
-        for m, (mesh, points) in enumerate(zip(training, choose)):
-            for candidate in candidates(mesh, extent):
-                mean = float(coarse_truth.query(points.on(candidate))[0].mean())
-                if mean < best["oracle shape"][0]:
-                    best["oracle shape"] = (mean, m, candidate)
-        best["input's shape"] = (0.0, *input_shape(heldout.partial[i], extent, training, choose))
-        for name, (_, m, candidate) in best.items():
+        shapes = candidate_shapes(extent, training, choose)
+        best = {"oracle shape": oracle_shape(coarse_truth, shapes),
+                "input's shape": input_shape(heldout.partial[i], shapes)}
+        for name, (m, candidate) in best.items():
             chosen[name].add(i, heldout.mesh_names[i], names[m], snap[m].on(candidate), truth, network[i])
     for name, choice in chosen.items():
         distance = np.concatenate(choice.distance)
