@@ -380,16 +380,21 @@ class GGDNet(nn.Module):
 
     def _forward(self, partial: Tensor, order: Tensor, shape: Tensor | None) -> GGDOutput:
         code, coarse, control, control_index, order = self._generate(partial, order, shape)
-        b, nc = control.shape[:2]
+        nc = control.shape[1]
         p_g = torch.cat([control, coarse], 1)
+        p_o, knn = self.deformed(p_g, nc, code, partial, order)
+        return GGDOutput(coarse=coarse, control=control, control_deformed=p_o[:, :nc], completion=p_o,
+                         generated=p_g, neighbours=knn, control_index=control_index)
+
+    def deformed(self, p_g: Tensor, nc: int, code: Tensor, partial: Tensor, order: Tensor) -> tuple[Tensor, Tensor]:
+        """(P_o, the kNN graph over P_g): the G-ResNet's offsets added to P_g, whose first `nc` points are the control
+        points, with this `code`, the input `partial` (its FPS `order`) in the frame it was completed in."""
         knn = knn_graph(p_g, self.config.knn_k, self.config.knn_margin if self.config.window_search else None)
-        label = torch.zeros(b, p_g.shape[1], 2, dtype=p_g.dtype, device=p_g.device)
+        label = torch.zeros(p_g.shape[0], p_g.shape[1], 2, dtype=p_g.dtype, device=p_g.device)
         label[:, :nc, 0] = 1.0
         label[:, nc:, 1] = 1.0
         x = torch.cat([self.local(p_g, partial, order), p_g, label], -1)
-        p_o = p_g + self.deform(x, code, knn)
-        return GGDOutput(coarse=coarse, control=control, control_deformed=p_o[:, :nc], completion=p_o,
-                         generated=p_g, neighbours=knn, control_index=control_index)
+        return p_g + self.deform(x, code, knn), knn
 
     def num_parameters(self) -> int:
         """Number of trainable parameters."""
