@@ -3,8 +3,8 @@ it nearer? (issue 32's point 3: is the network's distance from the true surface 
 draw, or in the code its encoder gives them?)
 
 For each held-out pair the encoder's code is given a per-pair offset, optimised with the network frozen (Adam,
-learning rate LR), and the completion is then run with the fitted code (the input's local features and kNN graph as
-shipped; spacing and merge as `published_outputs`). Rows:
+learning rate LR, or with `--decay` falling to LR / 100), and the completion is then run with the fitted code (the
+input's local features and kNN graph as shipped; spacing and merge as `published_outputs`). Rows:
 
 - `encoder's code (shipped)`: the shipped output, as `heldout_oracles.py` scores it;
 - `P_s fitted to the truth`: the offset minimises the Chamfer distance between P_s (the tree decoder's points) and
@@ -24,7 +24,7 @@ network gives them and after the spacing (`--spacing`, `spacing_variants.py`'s S
 5:0.3:0.3), and of the network points in the output, and how far the code moved.
 
     python benchmarks/heldout_code_fit.py [--model PT] [--meshes DIR] [--heldout N] [--pairs heldout] [--steps S]
-        [--through-steps S] [--spacing SPEC]
+        [--through-steps S] [--decay] [--spacing SPEC]
 """
 from __future__ import annotations
 
@@ -81,11 +81,13 @@ class Frozen:
         return self._back(p_o), knn
 
 
-def fitted(frozen: Frozen, loss_of: object, steps: int, through: bool = False) -> Tensor:
+def fitted(frozen: Frozen, loss_of: object, steps: int, through: bool = False, decay: bool = False) -> Tensor:
     """The code plus an offset minimising `loss_of(points, offset)` (summed over pairs), the points P_s, or with
-    `through` P_o's points but the control points (the whole network run with that code)."""
+    `through` P_o's points but the control points (the whole network run with that code); `decay`: the learning rate
+    falls from LR to LR / 100 (cosine) over the steps."""
     offset = torch.zeros_like(frozen.code, requires_grad=True)
     optimiser = torch.optim.Adam([offset], lr=LR)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps, eta_min=LR / 100) if decay else None
     for _ in range(steps):
         optimiser.zero_grad()
         code = frozen.code + offset
@@ -93,6 +95,8 @@ def fitted(frozen: Frozen, loss_of: object, steps: int, through: bool = False) -
         loss = loss_of(points, offset).sum()   # type: ignore[operator]
         loss.backward()
         optimiser.step()
+        if schedule is not None:
+            schedule.step()
     return (frozen.code + offset).detach()
 
 
@@ -120,6 +124,7 @@ def main() -> None:
     parser.add_argument("--heldout", type=int, default=128)
     parser.add_argument("--pairs", choices=("heldout", "seen-meshes"), default="heldout")
     parser.add_argument("--steps", type=int, default=STEPS, help="steps of the fits of P_s")
+    parser.add_argument("--decay", action="store_true", help="the learning rate falls to 1 %% of LR over the steps")
     parser.add_argument("--spacing", default="5:0.3:0.3", help="spacing_variants.py's SPEC (default: shipped)")
     parser.add_argument("--through-steps", type=int, default=THROUGH_STEPS, help="steps of the fit of P_o")
     args = parser.parse_args()
@@ -141,13 +146,15 @@ def main() -> None:
         fit = torch.stack([chamfer_l2_directional(s[None], c[None])[0][0] for s, c in zip(scans, coarse)])
         return fit + OFFSET_WEIGHT * offset.square().sum(-1)
 
-    truth_fit = fitted(frozen, to_truth, args.steps)
+    truth_fit = fitted(frozen, to_truth, args.steps, decay=args.decay)
+    best = fitted(frozen, to_truth, args.through_steps, through=True, decay=args.decay)
     codes = {"encoder's code (shipped)": (frozen.code, None),
              "P_s fitted to the truth": (truth_fit, None),
              "P_s fitted, G-ResNet's code kept": (truth_fit, frozen.code),
-             "P_o fitted to the truth": (fitted(frozen, to_truth, args.through_steps, through=True), None),
-             "P_s fitted to the scan": (fitted(frozen, to_scan, args.steps), None)}
-    print(f"{args.pairs} pairs: {len(partials)}; {args.steps} Adam steps at {LR} on a per-pair code offset")
+             "P_o fitted to the truth": (best, None),
+             "P_s fitted to the scan": (fitted(frozen, to_scan, args.steps, decay=args.decay), None)}
+    print(f"{args.pairs} pairs: {len(partials)}; {args.steps} Adam steps ({args.through_steps} through the whole "
+          f"network) at {LR}{' falling to ' + str(LR / 100) if args.decay else ''} on a per-pair code offset")
     print("CD, CD(D,G) x1e4, F-score@1 % (precision / recall), on the surface (within 2 %); P_s's and the network "
           "points' mean distance to the true mesh")
     nc = model.config.num_control

@@ -9,13 +9,15 @@ mesh of its network points and the mean of the whole completion's before the mer
 targets are the pairs' two surface samples together (4,096 points); the losses, weights and frozen refiner are the
 shipped recipe's (lambda 3, gamma 3, batch 16: 8 steps an epoch); no drive. One core, about 30 s an epoch.
 
-Capacity and loss probes: `--beta` sets the Laplacian shape term's weight (the shipped 0.5 keeps the deformation from
-changing P_g's local shape), `--batch` the pairs per step; `--gcn-blocks K`, `--gcn-width W`, `--tree-hidden H0,H1`
-and `--shape-basis K` (`GGDConfig.shape_basis`) grow the network before training, so that the grown network
-computes exactly what the starting one does (`grown`).
+`--lr-final` decays the learning rate (cosine, per epoch) from `--lr` to it; each stage's schedule runs from epoch 0
+to its own last epoch, so a later stage jumps back up the curve: use one stage. Capacity and loss probes: `--beta` sets
+the Laplacian shape term's weight (the shipped 0.5 keeps the deformation from changing P_g's local shape), `--batch`
+the pairs per step; `--gcn-blocks K`, `--gcn-width W`, `--tree-hidden H0,H1` and `--shape-basis K`
+(`GGDConfig.shape_basis`) grow the network before training, so that the grown network computes exactly what the
+starting one does (`grown`).
 
-    python benchmarks/heldout_memorise.py OUTPUT [--stages 5,15,40] [--lr 1e-4] [--batch 16] [--beta 0.5]
-        [--gcn-blocks K] [--gcn-width W] [--tree-hidden H0,H1] [--shape-basis K] [--model PT] [--pairs 128]
+    python benchmarks/heldout_memorise.py OUTPUT [--stages 5,15,40] [--lr 1e-4] [--lr-final LR] [--batch 16]
+        [--beta 0.5] [--gcn-blocks K] [--gcn-width W] [--tree-hidden H0,H1] [--shape-basis K] [--model PT] [--pairs 128]
 """
 from __future__ import annotations
 
@@ -89,6 +91,7 @@ def main() -> None:
     parser.add_argument("output", help="training folder (resumed stage by stage)")
     parser.add_argument("--stages", default="5,15,40", help="epochs after which to measure (default 5,15,40)")
     parser.add_argument("--lr", type=float, default=1e-4)
+    parser.add_argument("--lr-final", type=float, help="cosine decay to this over each stage's epochs (default none)")
     parser.add_argument("--batch", type=int, default=16, help="pairs per step")
     parser.add_argument("--beta", type=float, default=0.5, help="the Laplacian shape term's weight")
     parser.add_argument("--gcn-blocks", type=int, help="grow the G-ResNet to this many residual blocks first")
@@ -115,7 +118,8 @@ def main() -> None:
     for epochs in (int(v) for v in args.stages.split(",")):
         started = time.time()
         settings = TrainSettings(epochs=epochs, generation_epochs=0, lam=3.0, beta=args.beta, gamma=3.0,
-                                 batch_size=args.batch, lr=args.lr, seed=0, freeze=("refiner.",))
+                                 batch_size=args.batch, lr=args.lr, lr_final=args.lr_final, seed=0,
+                                 freeze=("refiner.",))
         train(config, data, data, args.output, settings, resume=True, init_from=start)
         print(f"trained to epoch {epochs} in {time.time() - started:.0f} s", flush=True)
         measure(f"{args.output}/last.pt", f"epoch {epochs}", pairs)
