@@ -6,7 +6,8 @@ For each held-out pair the encoder's code is given a per-pair offset, optimised 
 learning rate LR, or with `--decay` falling to LR / 100), and the completion is then run with the fitted code (the
 input's local features and kNN graph as shipped; spacing and merge as `published_outputs`). Rows:
 
-- `encoder's code (shipped)`: the shipped output, as `heldout_oracles.py` scores it;
+- `encoder's code (shipped)`: the shipped output, as `heldout_oracles.py` scores it (run on the whole batch at once,
+  the pipeline runs one vehicle at a time: rounding may differ);
 - `P_s fitted to the truth`: the offset minimises the Chamfer distance between P_s (the tree decoder's points) and
   the pair's true surface sample (STEPS steps of the decoder alone); the decoder and the G-ResNet both take the code;
 - `P_s fitted, G-ResNet's code kept`: the same code for the decoder, the encoder's for the G-ResNet;
