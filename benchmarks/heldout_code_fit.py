@@ -33,19 +33,16 @@ import argparse
 
 import numpy as np
 import torch
-from heldout_oracles import network_points, on_surface, score, seen_mesh_pairs
+from heldout_oracles import network_points, score, seen_mesh_pairs, surface_distances
 from spacing_variants import settings_of
 from torch import Tensor
 
-from gd_completion.evaluation.baselines import _resampled, _shapes
+from gd_completion.evaluation.baselines import _resampled, _shapes, mirror_symmetry, spaced_and_merged
 from gd_completion.evaluation.synthetic import HeldOut, load_heldout_meshes
-from gd_completion.merge import merge_with_pool
 from gd_completion.model.box_refiner import from_frame
 from gd_completion.model.checkpoint import DEFAULT_WEIGHTS, load_model
 from gd_completion.model.losses import chamfer_l2, chamfer_l2_directional
 from gd_completion.model.network import GGDNet
-from gd_completion.model.ops import gather_points
-from gd_completion.spacing import even_spacing
 
 STEPS = 300          # steps of a fit of P_s (the decoder alone)
 THROUGH_STEPS = 100  # steps of the fit of P_o (the whole network each step)
@@ -64,8 +61,7 @@ class Frozen:
         shape = model._shape(_shapes(sizes, len(partial)), partial)
         self.partial, shape_in_frame, self.frame = model._refine(partial, shape)
         self.order = model._order(self.partial)
-        self.code = model.encoder(self.partial, self.order, shape_in_frame)
-        self.control = gather_points(self.partial, self.order[:, : model.config.num_control])
+        self.code, _, self.control, _, _ = model._generate(self.partial, self.order, shape_in_frame)
 
     def coarse(self, code: Tensor) -> Tensor:
         """P_s in the pair's normalised frame."""
@@ -108,14 +104,8 @@ def published(frozen: Frozen, code: Tensor, partials: list[np.ndarray], sizes: n
     """(published output, P_o, the spaced P_o) with this code, as `published_outputs` with the spacing `spacing`
     (`spacing_variants.py`'s SPEC)."""
     raw, graph = (t.numpy() for t in frozen.completion(code, deform_code))
-    spaced = raw.copy() if spacing == "none" else even_spacing(raw, settings_of(spacing), graph=graph)
-    merged = np.stack([merge_with_pool(c, p, size=s).points for c, p, s in zip(spaced, partials, sizes)])
+    spaced, merged = spaced_and_merged(raw, graph, partials, sizes, spacing=settings_of(spacing))
     return merged, raw, spaced
-
-
-def mean_distance(clouds: np.ndarray, meshes: list[tuple[np.ndarray, np.ndarray]]) -> float:
-    """Mean distance of the clouds' points to their true meshes."""
-    return float(np.concatenate([np.linalg.norm(c - on_surface(c, m), axis=-1) for c, m in zip(clouds, meshes)]).mean())
 
 
 def main() -> None:
@@ -138,7 +128,7 @@ def main() -> None:
     model = load_model(args.model)
     frozen = Frozen(model, torch.from_numpy(_resampled(partials, model.config.num_input)[0]), sizes)
     truth = torch.from_numpy(np.asarray(pairs.complete, np.float32))
-    scans = [torch.from_numpy(np.concatenate([p, p * np.array([1, -1, 1], np.float32)])) for p in partials]
+    scans = [torch.from_numpy(mirror_symmetry(p)) for p in partials]
 
     def to_truth(coarse: Tensor, offset: Tensor) -> Tensor:
         return chamfer_l2(coarse, truth)
@@ -163,7 +153,7 @@ def main() -> None:
         output, raw, spaced = published(frozen, code, partials, sizes, deform_code, args.spacing)
         score(name, output.astype(np.float32), pairs)
         network = network_points(output, spaced, pairs.meshes)[2]
-        distances = [mean_distance(c, pairs.meshes)
+        distances = [surface_distances(c, pairs.meshes).mean()
                      for c in (frozen.coarse(code).detach().numpy(), raw[:, nc:], spaced[:, nc:])]
         moved = (code - frozen.code).norm(dim=-1).mean()
         print("  P_s {:.4f}, P_o but P_c {:.4f}, spaced {:.4f}".format(*distances)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from heldout_oracles import network_points, on_surface, score, seen_mesh_pairs
+from heldout_oracles import network_points, score, seen_mesh_pairs, surface_distances
 
 from gd_completion.evaluation.baselines import published_outputs
 from gd_completion.evaluation.synthetic import HeldOut
@@ -44,7 +44,7 @@ def measure(path: str, label: str, pairs: HeldOut) -> None:
     outputs = published_outputs(load_model(path), list(pairs.partial), np.asarray(pairs.sizes, np.float64))
     published, completion = outputs.published, outputs.completion
     gap = network_points(published, completion, pairs.meshes)[2]
-    raw = np.concatenate([np.linalg.norm(c - on_surface(c, m), axis=-1) for c, m in zip(completion, pairs.meshes)])
+    raw = surface_distances(completion, pairs.meshes)
     score(label, published, pairs)
     print(f"{label}: network points in the output: mean {gap.mean():.4f} median {np.median(gap):.4f}; "
           f"the spaced completion's: mean {raw.mean():.4f}", flush=True)

@@ -64,6 +64,12 @@ def on_surface(points: np.ndarray, mesh: tuple[np.ndarray, np.ndarray], dense: i
     return sample[cKDTree(sample).query(points)[1]]
 
 
+def surface_distances(clouds: np.ndarray | list[np.ndarray], meshes: list[tuple[np.ndarray, np.ndarray]]
+                      ) -> np.ndarray:
+    """Every point's distance to its cloud's true mesh (`on_surface`), flat."""
+    return np.concatenate([np.linalg.norm(c - on_surface(c, m), axis=-1) for c, m in zip(clouds, meshes)])
+
+
 def seen_mesh_pairs(n: int, mesh_dir: str) -> HeldOut:
     """`n` pairs of the meshes the network was trained on (all but HELDOUT_MESHES), drawn as the held-out pairs are."""
     return load_mesh_pairs(n, mesh_dir, [p.stem for p in mesh_files(mesh_dir) if p.stem not in HELDOUT_MESHES],

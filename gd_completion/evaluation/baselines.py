@@ -150,9 +150,18 @@ def published_outputs(model: GGDNet, partials: Sequence[np.ndarray],
         raise ValueError(f"{len(partials)} partial clouds but {len(asides)} sets of points kept aside")
     batch = _resampled(partials, model.config.num_input)[0]
     generated, raw, graph = network_forward(model, batch, sizes, max_batch)
+    return NetworkOutputs(generated, raw, *spaced_and_merged(raw, graph, partials, sizes, asides, spacing))
+
+
+def spaced_and_merged(raw: np.ndarray, graph: np.ndarray, partials: Sequence[np.ndarray],
+                      sizes: np.ndarray | Sequence[Sequence[float]] | None = None,
+                      asides: Sequence[np.ndarray] | None = None,
+                      spacing: SpacingSettings | None = SHIPPED_SPACING) -> tuple[np.ndarray, np.ndarray]:
+    """(completion, published) of the network's raw P_o (B, N_o, 3) and its kNN graph, as `published_outputs` makes
+    them: evenly spaced (None: the raw P_o), then merged with a pool of each cloud's measured points."""
     completion = even_spacing(raw, spacing, graph=graph) if spacing is not None else raw.copy()
     boxes = np.asarray(sizes, np.float64).reshape(-1, 3) if sizes is not None else None
     merged = [merge_with_pool(c, p, aside=None if asides is None else asides[i],
                               size=None if boxes is None else boxes[i]).points
               for i, (p, c) in enumerate(zip(partials, completion))]
-    return NetworkOutputs(generated, raw, completion, np.stack(merged) if merged else completion.copy())
+    return completion, np.stack(merged) if merged else completion.copy()
